@@ -1,0 +1,237 @@
+"""The two buffers of SAIL: the self replay buffer R_B and the adaptive teacher buffer R_E.
+
+Both hold float32 torch tensors (a 1e6-transition Walker2d buffer with the time feature is
+about 0.15 GB) and sample with torch's global RNG, so a fixed torch seed fixes the batches.
+The demo file format is documented in README.md; `load_demos` checks it.
+"""
+
+import os
+import zipfile
+
+import numpy as np
+import torch
+
+from envs import ConfigError
+
+DEMO_KEYS = ("observations", "actions", "next_observations", "rewards", "terminations",
+             "truncations", "episode_lengths", "episode_returns", "env_id")
+
+
+class ReplayBuffer:
+    """R_B: every transition the agent generated, a ring of `capacity` transitions.
+
+    Storage is preallocated; `add` writes one row through numpy views of the tensors, so a step
+    costs no allocation. `rewards` is the env's reward (dense for the teacher, sparse episodic
+    for SAIL, where only the TD3-sparse baseline reads it).
+    """
+
+    def __init__(self, obs_dim, act_dim, capacity):
+        self.capacity, self.size, self.ptr = int(capacity), 0, 0
+        self.obs = torch.zeros(self.capacity, obs_dim)
+        self.actions = torch.zeros(self.capacity, act_dim)
+        self.rewards = torch.zeros(self.capacity)
+        self.next_obs = torch.zeros(self.capacity, obs_dim)
+        self.terminated = torch.zeros(self.capacity)
+        self._views = [t.numpy() for t in self.tensors()]
+
+    def tensors(self):
+        return self.obs, self.actions, self.rewards, self.next_obs, self.terminated
+
+    def add(self, obs, action, reward, next_obs, terminated):
+        for view, value in zip(self._views, (obs, action, reward, next_obs, terminated)):
+            view[self.ptr] = value
+        self.ptr = (self.ptr + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, batch_size):
+        """Uniform batch (obs, actions, rewards, next_obs, terminated) from the whole buffer."""
+        return self.gather(torch.randint(0, self.size, (batch_size,)))
+
+    def sample_recent(self, batch_size, window):
+        """Uniform batch from the `window` most recent transitions (on-policy ablation)."""
+        window = min(window, self.size)
+        back = torch.randint(1, window + 1, (batch_size,))
+        return self.gather((self.ptr - back) % self.capacity)
+
+    def gather(self, idx):
+        return tuple(t[idx] for t in self.tensors())
+
+    def state_dict(self):
+        return {"size": self.size, "ptr": self.ptr, "data": [t[:self.size].clone() for t in self.tensors()]}
+
+    def load_state_dict(self, state):
+        self.size, self.ptr = state["size"], state["ptr"]
+        for t, saved in zip(self.tensors(), state["data"]):
+            t[:self.size] = saved
+
+
+class TeacherBuffer:
+    """R_E: whole episodes with their episodic returns (paper, "Self-Adaptive Imitation Learning").
+
+    Promotion rule (Algorithm 1): a finished episode whose episodic return is strictly higher
+    than the threshold C = min return over the kept episodes joins the buffer whole.
+    Capacity is in transitions (REFERENCE: 1e4, the authors' code). When a promotion overflows
+    it, the lowest-return episodes leave first (never the one just added), so the buffer keeps
+    the best episodes seen and the threshold never decreases. The authors' FIFO ring would
+    instead drop the oldest data, which may be better than what stays.
+    """
+
+    def __init__(self, capacity):
+        self.capacity = int(capacity)
+        self.episodes = []  # (episodic_return, (obs, actions, next_obs, terminated))
+        self._flat = None
+
+    def __len__(self):
+        return sum(len(ep[1][0]) for ep in self.episodes)
+
+    @property
+    def num_episodes(self):
+        return len(self.episodes)
+
+    @property
+    def threshold(self):
+        """C = min episodic return over the kept episodes (-inf when empty)."""
+        return min((ret for ret, _ in self.episodes), default=-float("inf"))
+
+    @property
+    def returns(self):
+        return [ret for ret, _ in self.episodes]
+
+    def add_episode(self, episodic_return, obs, actions, next_obs, terminated):
+        new = (float(episodic_return), tuple(torch.as_tensor(np.asarray(x), dtype=torch.float32)
+                                             for x in (obs, actions, next_obs, terminated)))
+        self.episodes.append(new)
+        while len(self) > self.capacity and len(self.episodes) > 1:
+            worst = min((ep for ep in self.episodes if ep is not new), key=lambda ep: ep[0])
+            self.episodes.remove(worst)
+        self._flat = [torch.cat(parts) for parts in zip(*(data for _, data in self.episodes))]
+
+    def promote(self, episodic_return, obs, actions, next_obs, terminated):
+        """Adds the episode if it beats the threshold; returns whether it did."""
+        if episodic_return <= self.threshold:
+            return False
+        self.add_episode(episodic_return, obs, actions, next_obs, terminated)
+        return True
+
+    def sample(self, batch_size):
+        """Uniform batch (obs, actions, next_obs, terminated) over the kept transitions."""
+        idx = torch.randint(0, len(self._flat[0]), (batch_size,))
+        return tuple(t[idx] for t in self._flat)
+
+    def state_dict(self):
+        return {"capacity": self.capacity, "episodes": self.episodes}
+
+    def load_state_dict(self, state):
+        self.capacity, self.episodes = state["capacity"], []
+        for ret, data in state["episodes"]:
+            self.add_episode(ret, *data)
+
+
+def mixed_batch(teacher_buffer, self_buffer, batch_size, alpha):
+    """The mixture alpha * R_E + (1 - alpha) * R_B (paper, d_mix of Eq. qgrad/pigrad).
+
+    round(alpha * batch_size) transitions come from the teacher buffer and the rest from the
+    self buffer. Returns (obs, actions, next_obs, terminated) and the env rewards of the self
+    part (teacher transitions carry no env reward: the learner never needs one).
+    """
+    num_teacher = round(alpha * batch_size)
+    obs, actions, rewards, next_obs, terminated = self_buffer.sample(batch_size - num_teacher)
+    if num_teacher == 0:
+        return (obs, actions, next_obs, terminated), rewards
+    t_obs, t_actions, t_next_obs, t_terminated = teacher_buffer.sample(num_teacher)
+    batch = (torch.cat([t_obs, obs]), torch.cat([t_actions, actions]),
+             torch.cat([t_next_obs, next_obs]), torch.cat([t_terminated, terminated]))
+    return batch, rewards
+
+
+# ---------------------------------------------------------------------------------------------
+# Demo files
+# ---------------------------------------------------------------------------------------------
+
+def save_demos(path, episodes, env_id):
+    """Writes a demo file atomically (temp file, then rename).
+
+    `episodes` is a list of dicts as envs.rollout returns them: raw (feature-free) arrays
+    observations, actions, next_observations, rewards (dense), the bools terminated / truncated
+    for the episode, and its episodic_return.
+    """
+    lengths = np.array([len(ep["actions"]) for ep in episodes], dtype=np.int64)
+    data = {
+        "observations": np.concatenate([ep["observations"] for ep in episodes]).astype(np.float32),
+        "actions": np.concatenate([ep["actions"] for ep in episodes]).astype(np.float32),
+        "next_observations": np.concatenate([ep["next_observations"] for ep in episodes]).astype(np.float32),
+        "rewards": np.concatenate([ep["rewards"] for ep in episodes]).astype(np.float32),
+        "terminations": np.concatenate([_last_flag(n, ep["terminated"]) for n, ep in zip(lengths, episodes)]),
+        "truncations": np.concatenate([_last_flag(n, ep["truncated"]) for n, ep in zip(lengths, episodes)]),
+        "episode_lengths": lengths,
+        "episode_returns": np.array([ep["episodic_return"] for ep in episodes], dtype=np.float64),
+        "env_id": np.array(env_id),
+        "gymnasium_version": np.array(_version("gymnasium")),
+        "mujoco_version": np.array(_version("mujoco")),
+    }
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "wb") as f:
+        np.savez_compressed(f, **data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def load_demos(path, env_id, obs_dim, act_dim, num_demos=None):
+    """Reads and checks a demo file; returns a list of episode dicts (the first `num_demos`).
+
+    Each episode: observations, actions, next_observations, rewards (raw float32 arrays),
+    terminated (bool), episodic_return (float). Any problem raises ConfigError naming the file.
+    """
+    if not os.path.isfile(path):
+        raise ConfigError(f"demo file {path} not found (make one with make_demos.py --env {env_id})")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            data = {k: f[k] for k in f.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise ConfigError(f"demo file {path} is not a readable .npz file ({e})") from None
+    missing = [k for k in DEMO_KEYS if k not in data]
+    if missing:
+        raise ConfigError(f"demo file {path} lacks {', '.join(missing)}")
+    file_env = str(data["env_id"])
+    n = len(data["actions"])
+    if file_env != env_id:
+        raise ConfigError(f"demo file {path} holds demonstrations for {file_env}, not {env_id}")
+    if data["observations"].ndim != 2 or data["observations"].shape[1] != obs_dim:
+        raise ConfigError(f"demo file {path}: observations have shape {data['observations'].shape}, "
+                          f"{env_id} has {obs_dim}-dim observations")
+    if data["actions"].ndim != 2 or data["actions"].shape[1] != act_dim:
+        raise ConfigError(f"demo file {path}: actions have shape {data['actions'].shape}, "
+                          f"{env_id} has {act_dim}-dim actions")
+    lengths = data["episode_lengths"].astype(np.int64)
+    same_rows = all(len(data[k]) == n for k in ("observations", "next_observations", "rewards",
+                                                    "terminations", "truncations"))
+    if not same_rows or lengths.sum() != n or (lengths <= 0).any() or len(data["episode_returns"]) != len(lengths):
+        raise ConfigError(f"demo file {path} is inconsistent: arrays and episode_lengths disagree")
+    if not all(np.isfinite(data[k]).all() for k in ("observations", "actions", "next_observations", "rewards")):
+        raise ConfigError(f"demo file {path} holds NaN or inf values")
+    num_demos = len(lengths) if num_demos is None else num_demos
+    if num_demos > len(lengths):
+        raise ConfigError(f"demo file {path} holds {len(lengths)} episodes, {num_demos} were asked for")
+    episodes, start = [], 0
+    for length, ret in zip(lengths[:num_demos], data["episode_returns"][:num_demos]):
+        sl = slice(start, start + length)
+        episodes.append({
+            "observations": data["observations"][sl], "actions": data["actions"][sl],
+            "next_observations": data["next_observations"][sl], "rewards": data["rewards"][sl],
+            "terminated": bool(data["terminations"][sl][-1]), "episodic_return": float(ret),
+        })
+        start += length
+    return episodes
+
+
+def _last_flag(length, flag):
+    flags = np.zeros(length, dtype=bool)
+    flags[-1] = flag
+    return flags
+
+
+def _version(package):
+    from importlib.metadata import version
+    return version(package)

@@ -1,0 +1,217 @@
+"""The sparse episodic MuJoCo setting of SAIL (paper, section "Problem Setting").
+
+The learner never sees a per-step reward: every step returns 0.0 except the one on which the
+episode ends, which returns the episodic return r_e, the sum of the dense rewards of the whole
+episode. Two optional observation features follow the authors' code and DAC:
+
+- a time feature 1 - t/T, so that a policy can tell how much of the horizon is left;
+- an absorbing-state indicator: an episode that terminates before the time limit moves to an
+  absorbing state that loops to itself (DAC, Kostrikov et al. 2019).
+
+Demonstrations are stored without features; `add_features` turns a recorded episode into the
+transitions the wrappers below would have produced online, with the same helper functions.
+"""
+
+import gymnasium as gym
+import numpy as np
+
+
+class ConfigError(Exception):
+    """Bad user input (env id, demo file, flag value): scripts print it as one line and exit."""
+
+
+def time_left(t, max_steps):
+    """The time feature 1 - t/T: 1.0 at reset, 0.0 at the time limit (t may be an array)."""
+    return np.float32(1.0 - np.asarray(t) / max_steps)
+
+
+def absorbing_state(obs_dim):
+    """The absorbing state: all zeros but the indicator (the last dimension)."""
+    state = np.zeros(obs_dim + 1, dtype=np.float32)
+    state[-1] = 1.0
+    return state
+
+
+class SparseEpisodicReward(gym.Wrapper):
+    """Reward 0 on every step but the last, which carries the episodic return r_e.
+
+    The info dict is replaced: MuJoCo envs put the reward terms in it (reward_forward, x_velocity,
+    ...), and none of that may reach the learner. At the end of an episode info holds
+    `episodic_return` and `episode_length` (for logging and for the teacher-buffer promotion).
+    """
+
+    def reset(self, **kwargs):
+        obs, _ = self.env.reset(**kwargs)
+        self.episodic_return, self.episode_length = 0.0, 0
+        return obs, {}
+
+    def step(self, action):
+        obs, dense_reward, terminated, truncated, _ = self.env.step(action)
+        self.episodic_return += float(dense_reward)
+        self.episode_length += 1
+        if terminated or truncated:
+            info = {"episodic_return": self.episodic_return, "episode_length": self.episode_length}
+            return obs, self.episodic_return, terminated, truncated, info
+        return obs, 0.0, terminated, truncated, {}
+
+
+class DenseEpisodeStatistics(gym.Wrapper):
+    """Dense reward passed through (teacher training), with the same end-of-episode info."""
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.episodic_return, self.episode_length = 0.0, 0
+        return obs, info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.episodic_return += float(reward)
+        self.episode_length += 1
+        if terminated or truncated:
+            info = dict(info, episodic_return=self.episodic_return, episode_length=self.episode_length)
+        return obs, reward, terminated, truncated, info
+
+
+class TimeFeature(gym.ObservationWrapper):
+    """Appends 1 - t/T to the observation (the authors' code; T is the env's time limit)."""
+
+    def __init__(self, env, max_steps):
+        super().__init__(env)
+        self.max_steps, self.t = max_steps, 0
+        low = np.append(env.observation_space.low, 0.0).astype(np.float32)
+        high = np.append(env.observation_space.high, 1.0).astype(np.float32)
+        self.observation_space = gym.spaces.Box(low, high, dtype=np.float32)
+
+    def reset(self, **kwargs):
+        self.t = 0
+        return super().reset(**kwargs)
+
+    def step(self, action):
+        self.t += 1
+        return super().step(action)
+
+    def observation(self, obs):
+        return np.append(obs, time_left(self.t, self.max_steps)).astype(np.float32)
+
+
+class AbsorbingState(gym.Wrapper):
+    """Absorbing states of DAC: one indicator dimension, 0 for real states.
+
+    When the wrapped env terminates (not on truncation by the time limit), this wrapper does not
+    end the episode: it returns the absorbing state with terminated=False, and the next step,
+    whatever the action, loops from the absorbing state to itself and ends the episode as
+    truncated. The learner therefore bootstraps through both transitions (the absorbing state is
+    not terminal for the critic; its value is learned like any other), at the cost of one extra
+    env step per terminated episode. The episode's reward (the episodic return in the sparse
+    setting) is given on that final step, so "reward only when the episode ends" still holds.
+    """
+
+    def __init__(self, env):
+        super().__init__(env)
+        obs_dim = env.observation_space.shape[0]
+        low = np.append(env.observation_space.low, 0.0).astype(np.float32)
+        high = np.append(env.observation_space.high, 1.0).astype(np.float32)
+        self.observation_space = gym.spaces.Box(low, high, dtype=np.float32)
+        self.absorbing = absorbing_state(obs_dim)
+        self.in_absorbing, self.pending = False, None
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.in_absorbing, self.pending = False, None
+        return np.append(obs, 0.0).astype(np.float32), info
+
+    def step(self, action):
+        if self.in_absorbing:  # the absorbing state's self-loop; then the episode is over
+            reward, info = self.pending
+            self.in_absorbing, self.pending = False, None
+            return self.absorbing.copy(), reward, False, True, info
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if terminated:
+            self.in_absorbing, self.pending = True, (reward, info)
+            return self.absorbing.copy(), 0.0, False, False, {}
+        return np.append(obs, 0.0).astype(np.float32), reward, False, truncated, info
+
+
+def make_env(env_id, seed, sparse=True, time_feature=True, absorbing=False):
+    """Builds `env_id` seeded with `seed` (env, action space, observation space).
+
+    sparse:       reward 0 except the episodic return on the last step (False: dense reward,
+                  used to train the teacher only).
+    time_feature: append 1 - t/T to the observation.
+    absorbing:    DAC's absorbing-state indicator and self-loop.
+    Raises ConfigError for an unknown id or a non-Box action space.
+    """
+    try:
+        env = gym.make(env_id)
+    except gym.error.Error as e:
+        raise ConfigError(f"unknown environment {env_id!r}: {e}") from None
+    if not isinstance(env.action_space, gym.spaces.Box):
+        raise ConfigError(f"{env_id} has a {type(env.action_space).__name__} action space; "
+                          "TD3 needs a continuous Box action space")
+    if not isinstance(env.observation_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
+        raise ConfigError(f"{env_id} needs a flat Box observation space")
+    max_steps = env.spec.max_episode_steps or 1000
+    env = SparseEpisodicReward(env) if sparse else DenseEpisodeStatistics(env)
+    if time_feature:
+        env = TimeFeature(env, max_steps)
+    if absorbing:
+        env = AbsorbingState(env)
+    env.max_episode_steps = max_steps
+    env.reset(seed=seed)
+    env.action_space.seed(seed)
+    env.observation_space.seed(seed)
+    return env
+
+
+def add_features(episode, max_steps, time_feature=True, absorbing=False):
+    """The transitions that the wrappers above produce online, for one recorded episode.
+
+    `episode` holds raw arrays observations, actions, next_observations (T rows each) and the
+    bool `terminated` (the episode ended in a terminal state, not by the time limit).
+    Returns (obs, actions, next_obs, terminated) float32 arrays as the learner stores them.
+    """
+    obs = np.asarray(episode["observations"], dtype=np.float32)
+    actions = np.asarray(episode["actions"], dtype=np.float32)
+    next_obs = np.asarray(episode["next_observations"], dtype=np.float32)
+    T = len(obs)
+    terminated = np.zeros(T, dtype=np.float32)
+    if episode["terminated"]:
+        terminated[-1] = 1.0
+    if time_feature:
+        t = np.arange(T + 1)
+        obs = np.column_stack([obs, time_left(t[:-1], max_steps)])
+        next_obs = np.column_stack([next_obs, time_left(t[1:], max_steps)])
+    if absorbing:
+        obs = np.column_stack([obs, np.zeros(T, np.float32)])
+        next_obs = np.column_stack([next_obs, np.zeros(T, np.float32)])
+        if episode["terminated"]:  # s_T becomes the absorbing state, which then loops once
+            absorbing_obs = absorbing_state(obs.shape[1] - 1)
+            next_obs[-1] = absorbing_obs
+            terminated[-1] = 0.0
+            obs = np.vstack([obs, absorbing_obs])
+            next_obs = np.vstack([next_obs, absorbing_obs])
+            actions = np.vstack([actions, np.zeros_like(actions[:1])])
+            terminated = np.append(terminated, np.float32(0.0))
+    return obs.astype(np.float32), actions, next_obs.astype(np.float32), terminated
+
+
+
+def rollout(env, policy):
+    """Runs one episode of `policy` (obs -> action) and returns its transitions.
+
+    The dict holds observations, actions, rewards, next_observations (as the env gave them),
+    terminated / truncated for the episode, and episodic_return from the wrappers' info.
+    """
+    obs, _ = env.reset()
+    steps = []
+    while True:
+        action = policy(obs)
+        next_obs, reward, terminated, truncated, info = env.step(action)
+        steps.append((obs, action, reward, next_obs))
+        obs = next_obs
+        if terminated or truncated:
+            break
+    observations, actions, rewards, next_observations = (np.array(x) for x in zip(*steps))
+    return {"observations": observations, "actions": actions, "rewards": rewards,
+            "next_observations": next_observations, "terminated": bool(terminated),
+            "truncated": bool(truncated), "episodic_return": info["episodic_return"]}

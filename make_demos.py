@@ -1,0 +1,134 @@
+"""Trains a sub-optimal TD3 teacher on the dense reward and records its demonstrations.
+
+    python make_demos.py --env Hopper-v5
+
+The teacher is plain TD3 (td3.py) on the dense MuJoCo reward. Every --eval-freq steps its
+deterministic policy is evaluated; once the mean return lies in the target band, episodes are
+recorded and those whose return is also in the band are kept. With --num-episodes of them the
+demo file is written (atomically) and the script ends. The band defaults follow the teacher
+quality of the paper (REFERENCE.md), clearly below what TD3 reaches with dense rewards.
+"""
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+import torch
+
+from buffers import ReplayBuffer, save_demos
+from envs import ConfigError, make_env, rollout
+from td3 import TD3
+
+# teacher return bands (low, high) at the paper's teacher quality
+BANDS = {
+    "Hopper-v5": (1000, 1500),
+    "Walker2d-v5": (1000, 1700),
+    "HalfCheetah-v5": (4000, 6000),
+    "Swimmer-v5": (40, 120),
+    "Ant-v5": (800, 1200),
+}
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--env", default="Hopper-v5", help="gymnasium env id")
+    p.add_argument("--seed", type=int, default=0, help="seed of env, action space and torch")
+    p.add_argument("--band", type=float, nargs=2, metavar=("LOW", "HIGH"),
+                   help="teacher return band (default: the paper's quality for the five envs)")
+    p.add_argument("--num-episodes", type=int, default=10, help="episodes to record")
+    p.add_argument("--output", help="demo file (default: demos/<env>.npz)")
+    p.add_argument("--total-timesteps", type=int, default=1_000_000,
+                   help="give up if the band is not reached after this many env steps")
+    p.add_argument("--learning-starts", type=int, default=10_000, help="uniformly random steps first")
+    p.add_argument("--eval-freq", type=int, default=5_000, help="env steps between evaluations")
+    p.add_argument("--eval-episodes", type=int, default=5, help="episodes per evaluation")
+    p.add_argument("--record-attempts", type=int, default=40,
+                   help="episodes tried per recording round to find --num-episodes in the band")
+    p.add_argument("--exploration-noise", type=float, default=0.1, help="std of Gaussian action noise")
+    p.add_argument("--batch-size", type=int, default=256, help="TD3 batch size")
+    p.add_argument("--hidden", type=int, nargs="+", default=[256, 256], help="hidden layer sizes")
+    p.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate of actor and critic")
+    p.add_argument("--gamma", type=float, default=0.99, help="discount")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    args = p.parse_args(argv)
+    if args.band is None:
+        if args.env not in BANDS:
+            p.error(f"no default band for {args.env}: give --band LOW HIGH")
+        args.band = BANDS[args.env]
+    if args.band[0] >= args.band[1]:
+        p.error("--band needs LOW < HIGH")
+    for name in ("num_episodes", "total_timesteps", "eval_freq", "eval_episodes", "record_attempts",
+                 "batch_size", "threads"):
+        if getattr(args, name) <= 0:
+            p.error(f"--{name.replace('_', '-')} must be positive")
+    if args.learning_starts < 0:
+        p.error("--learning-starts must be >= 0")
+    args.output = args.output or os.path.join("demos", f"{args.env}.npz")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    try:
+        # The teacher sees raw observations and the dense reward; demos are stored raw.
+        env = make_env(args.env, args.seed, sparse=False, time_feature=False)
+        eval_env = make_env(args.env, args.seed + 10_000, sparse=False, time_feature=False)
+    except ConfigError as e:
+        sys.exit(f"make_demos.py: error: {e}")
+    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    low, high = env.action_space.low, env.action_space.high
+    agent = TD3(obs_dim, act_dim, low, high, hidden=args.hidden, lr=args.lr, gamma=args.gamma)
+    buffer = ReplayBuffer(obs_dim, act_dim, min(args.total_timesteps, 1_000_000))
+    band_low, band_high = args.band
+    in_band = lambda ret: band_low <= ret <= band_high  # noqa: E731
+
+    obs, _ = env.reset()
+    start = time.time()
+    for global_step in range(1, args.total_timesteps + 1):
+        if global_step <= args.learning_starts:
+            action = env.action_space.sample()
+        else:
+            noise = rng.normal(0.0, args.exploration_noise * (high - low) / 2, size=act_dim)
+            action = np.clip(agent.act(obs) + noise, low, high).astype(np.float32)
+        next_obs, reward, terminated, truncated, info = env.step(action)
+        buffer.add(obs, action, reward, next_obs, terminated)
+        obs = next_obs
+        if terminated or truncated:
+            obs, _ = env.reset()
+
+        if global_step > args.learning_starts:
+            obs_b, act_b, rew_b, next_obs_b, term_b = buffer.sample(args.batch_size)
+            agent.update(obs_b, act_b, rew_b, next_obs_b, term_b)
+
+        if global_step % args.eval_freq == 0:
+            returns = [rollout(eval_env, agent.act)["episodic_return"] for _ in range(args.eval_episodes)]
+            mean = float(np.mean(returns))
+            print(f"step {global_step}: teacher eval return {mean:.1f} +- {np.std(returns):.1f} "
+                  f"({global_step / (time.time() - start):.0f} steps/s)", flush=True)
+            if not in_band(mean):
+                continue
+            episodes = []
+            for _ in range(args.record_attempts):
+                episode = rollout(eval_env, agent.act)
+                if in_band(episode["episodic_return"]):
+                    episodes.append(episode)
+                if len(episodes) == args.num_episodes:
+                    save_demos(args.output, episodes, args.env)
+                    rets = [ep["episodic_return"] for ep in episodes]
+                    lens = [len(ep["actions"]) for ep in episodes]
+                    print(f"wrote {args.output}: {len(episodes)} episodes after {global_step} teacher steps, "
+                          f"returns {np.mean(rets):.1f} +- {np.std(rets):.1f} (min {min(rets):.1f}, "
+                          f"max {max(rets):.1f}), lengths {min(lens)}-{max(lens)}")
+                    return 0
+            print(f"  only {len(episodes)} of {args.record_attempts} episodes in the band; training on")
+    sys.exit(f"make_demos.py: error: the teacher did not reach the band {args.band} "
+             f"within {args.total_timesteps} steps")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
