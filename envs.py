@@ -12,12 +12,23 @@ Demonstrations are stored without features; `add_features` turns a recorded epis
 transitions the wrappers below would have produced online, with the same helper functions.
 """
 
+import argparse
+import sys
+
 import gymnasium as gym
 import numpy as np
 
 
 class ConfigError(Exception):
     """Bad user input (env id, demo file, flag value): scripts print it as one line and exit."""
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse that reports a bad flag as one line (no usage block) and exits with code 2."""
+
+    def error(self, message):
+        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        sys.exit(2)
 
 
 def time_left(t, max_steps):

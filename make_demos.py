@@ -9,7 +9,6 @@ demo file is written (atomically) and the script ends. The band defaults follow 
 quality of the paper (REFERENCE.md), clearly below what TD3 reaches with dense rewards.
 """
 
-import argparse
 import os
 import sys
 import time
@@ -18,7 +17,7 @@ import numpy as np
 import torch
 
 from buffers import ReplayBuffer, save_demos
-from envs import ConfigError, make_env, rollout
+from envs import ArgumentParser, ConfigError, make_env, rollout
 from td3 import TD3
 
 # teacher return bands (low, high) at the paper's teacher quality
@@ -32,7 +31,7 @@ BANDS = {
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="Hopper-v5", help="gymnasium env id")
     p.add_argument("--seed", type=int, default=0, help="seed of env, action space and torch")
     p.add_argument("--band", type=float, nargs=2, metavar=("LOW", "HIGH"),

@@ -1,0 +1,307 @@
+"""Tests of the SAIL reimplementation: run with `python -m pytest -q test_sail.py`."""
+
+import os
+import subprocess
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from buffers import ReplayBuffer, TeacherBuffer, load_demos, mixed_batch, save_demos
+from envs import ConfigError, absorbing_state, add_features, make_env, rollout
+from td3 import TD3
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+SHIPPED = {"Hopper-v5": (1000, 1500), "Walker2d-v5": (1000, 1700), "HalfCheetah-v5": (4000, 6000),
+           "Swimmer-v5": (40, 120), "Ant-v5": (800, 1200)}
+
+
+def run_script(*args, timeout=240):
+    return subprocess.run([sys.executable, *args], cwd=HERE, capture_output=True, text=True, timeout=timeout)
+
+
+def assert_one_line_error(proc):
+    assert proc.returncode != 0
+    assert "Traceback" not in proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip() and "WARNING: compiler" not in line]
+    assert len(lines) == 1 and "error" in lines[0], proc.stderr
+
+
+def fixed_actions(env_id, n, seed=0):
+    space = gym.make(env_id).action_space
+    space.seed(seed)
+    return [space.sample() for _ in range(n)]
+
+
+# ---------------------------------------------------------------------------------------------
+# envs.py: the sparse episodic setting
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("env_id, ends_by", [("Hopper-v5", "terminated"), ("Swimmer-v5", "truncated")])
+def test_sparse_reward_is_zero_then_the_exact_dense_sum(env_id, ends_by):
+    actions = fixed_actions(env_id, 1000)
+    dense = gym.make(env_id)
+    dense.reset(seed=3)
+    sparse = make_env(env_id, seed=3, time_feature=False)
+    sparse.reset(seed=3)
+    dense_rewards, sparse_rewards = [], []
+    for action in actions:
+        d_obs, d_rew, d_term, d_trunc, _ = dense.step(action)
+        s_obs, s_rew, s_term, s_trunc, info = sparse.step(action)
+        np.testing.assert_array_equal(d_obs, s_obs)
+        assert (d_term, d_trunc) == (s_term, s_trunc)
+        dense_rewards.append(d_rew)
+        sparse_rewards.append(s_rew)
+        if s_term or s_trunc:
+            break
+        assert info == {}  # no reward terms (reward_forward, x_velocity, ...) reach the learner
+    assert (s_term if ends_by == "terminated" else s_trunc and not s_term)
+    if ends_by == "truncated":
+        assert len(sparse_rewards) == 1000
+    assert all(r == 0.0 for r in sparse_rewards[:-1])
+    assert sparse_rewards[-1] == pytest.approx(sum(dense_rewards), rel=1e-12)
+    assert info["episodic_return"] == sparse_rewards[-1]
+    assert info["episode_length"] == len(sparse_rewards)
+    assert set(info) == {"episodic_return", "episode_length"}
+
+
+def test_time_feature_counts_down_to_zero_at_the_time_limit():
+    env = make_env("Swimmer-v5", seed=0, time_feature=True)
+    obs, _ = env.reset()
+    assert obs.dtype == np.float32 and obs.shape == (9,) and obs[-1] == 1.0
+    for t in range(1, 1001):
+        obs, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        assert obs[-1] == pytest.approx(1 - t / 1000)
+    assert truncated and not terminated and obs[-1] == 0.0
+
+
+def test_absorbing_state_loops_once_and_is_not_terminal():
+    env = make_env("Hopper-v5", seed=1, time_feature=False, absorbing=True)
+    obs, _ = env.reset()
+    assert obs.shape == (12,) and obs[-1] == 0.0
+    rewards = []
+    for action in fixed_actions("Hopper-v5", 1000):
+        obs, reward, terminated, truncated, info = env.step(action)
+        rewards.append(reward)
+        assert not terminated  # the critic bootstraps through the absorbing state
+        if obs[-1] == 1.0:
+            break
+    np.testing.assert_array_equal(obs, absorbing_state(11))
+    assert reward == 0.0 and not truncated
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())  # self-loop
+    np.testing.assert_array_equal(obs, absorbing_state(11))
+    assert truncated and not terminated and reward == info["episodic_return"] != 0.0
+    assert all(r == 0.0 for r in rewards)
+
+
+@pytest.mark.parametrize("time_feature, absorbing", [(True, False), (False, True), (True, True)])
+def test_features_added_to_demos_equal_the_online_wrappers(time_feature, absorbing):
+    raw_env = make_env("Hopper-v5", seed=5, sparse=False, time_feature=False)
+    actions = iter(fixed_actions("Hopper-v5", 1000, seed=2))
+    episode = rollout(raw_env, lambda obs: next(actions))
+    assert episode["terminated"]
+    obs, act, next_obs, term = add_features(episode, 1000, time_feature, absorbing)
+
+    online = make_env("Hopper-v5", seed=5, time_feature=time_feature, absorbing=absorbing)
+    actions = iter(fixed_actions("Hopper-v5", 1000, seed=2))
+    online_obs, _ = online.reset()  # the second reset of a seed-5 env, as in rollout above
+    rows = []
+    while True:
+        action = next(actions, np.zeros(3, np.float32))
+        online_next, _, terminated, truncated, _ = online.step(action)
+        rows.append((online_obs, action, online_next, float(terminated)))
+        online_obs = online_next
+        if terminated or truncated:
+            break
+    assert len(rows) == len(obs)
+    for i, (o, a, no, t) in enumerate(rows):
+        np.testing.assert_allclose(obs[i], o, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(next_obs[i], no, rtol=1e-6, atol=1e-6)
+        assert term[i] == t
+        if not (absorbing and i == len(rows) - 1):  # the absorbing self-loop's action is free
+            np.testing.assert_array_equal(act[i], a)
+    assert term.dtype == obs.dtype == next_obs.dtype == np.float32
+    assert term[-1] == (0.0 if absorbing else 1.0)
+
+
+def test_make_env_rejects_unknown_ids_and_discrete_actions():
+    with pytest.raises(ConfigError, match="unknown environment"):
+        make_env("NoSuchEnv-v5", seed=0)
+    with pytest.raises(ConfigError, match="Discrete"):
+        make_env("CartPole-v1", seed=0)
+
+
+def test_make_env_is_seeded():
+    def first_steps(seed):
+        env = make_env("Walker2d-v5", seed=seed)
+        obs = [env.reset()[0]]
+        obs += [env.step(env.action_space.sample())[0] for _ in range(5)]
+        return np.array(obs)
+    np.testing.assert_array_equal(first_steps(7), first_steps(7))
+    assert not np.array_equal(first_steps(7), first_steps(8))
+
+
+# ---------------------------------------------------------------------------------------------
+# buffers.py
+# ---------------------------------------------------------------------------------------------
+
+def test_replay_buffer_is_float32_and_small_enough():
+    buffer = ReplayBuffer(obs_dim=18, act_dim=6, capacity=1_000_000)  # Walker2d + time feature
+    assert all(t.dtype == torch.float32 for t in buffer.tensors())
+    assert sum(t.numel() * t.element_size() for t in buffer.tensors()) < 0.25e9
+
+
+def test_replay_buffer_samples_only_what_was_added_and_wraps():
+    buffer = ReplayBuffer(obs_dim=2, act_dim=1, capacity=10)
+    for i in range(14):  # 14 > capacity: the first 4 are overwritten
+        buffer.add([i, i], [i], float(i), [i + 1, i + 1], i % 2)
+    assert buffer.size == 10
+    torch.manual_seed(0)
+    obs, actions, rewards, next_obs, terminated = buffer.sample(500)
+    assert obs.shape == (500, 2) and actions.shape == (500, 1) and rewards.shape == (500,)
+    assert set(obs[:, 0].tolist()) == set(range(4, 14))
+    torch.testing.assert_close(next_obs, obs + 1)
+    torch.testing.assert_close(terminated, obs[:, 0] % 2)
+    recent, *_ = buffer.sample_recent(200, window=3)
+    assert set(recent[:, 0].tolist()) == {11, 12, 13}
+
+
+def episode_arrays(value, length, obs_dim=3, act_dim=2):
+    obs = np.full((length, obs_dim), value, np.float32)
+    return obs, np.full((length, act_dim), value, np.float32), obs + 1, np.zeros(length, np.float32)
+
+
+def test_promotion_rule_and_threshold():
+    teacher = TeacherBuffer(capacity=100)
+    teacher.add_episode(50.0, *episode_arrays(0, 40))
+    teacher.add_episode(80.0, *episode_arrays(1, 40))
+    assert teacher.threshold == 50.0 and teacher.num_episodes == 2
+    assert not teacher.promote(50.0, *episode_arrays(2, 10))  # not strictly better
+    assert not teacher.promote(10.0, *episode_arrays(2, 10))
+    assert teacher.promote(60.0, *episode_arrays(3, 10))  # beats the worst kept return
+    assert teacher.num_episodes == 3 and len(teacher) == 90 and teacher.threshold == 50.0
+    # 90 + 40 > 100: the lowest-return episode (50) leaves, the threshold rises
+    assert teacher.promote(70.0, *episode_arrays(4, 40))
+    assert sorted(teacher.returns) == [60.0, 70.0, 80.0] and teacher.threshold == 60.0
+    assert len(teacher) == 90
+    obs, actions, next_obs, terminated = teacher.sample(1000)
+    assert set(obs[:, 0].tolist()) == {1.0, 3.0, 4.0}
+    assert obs.dtype == torch.float32
+
+
+def test_promotion_never_evicts_the_new_episode():
+    teacher = TeacherBuffer(capacity=50)
+    teacher.add_episode(10.0, *episode_arrays(0, 30))
+    assert teacher.promote(20.0, *episode_arrays(1, 50))
+    assert teacher.returns == [20.0] and teacher.threshold == 20.0
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.25, 0.5, 1.0])
+def test_mixed_sampling_proportions(alpha):
+    teacher = TeacherBuffer(capacity=1000)
+    teacher.add_episode(1.0, *episode_arrays(1.0, 100))
+    self_buffer = ReplayBuffer(obs_dim=3, act_dim=2, capacity=100)
+    for _ in range(50):
+        self_buffer.add(np.zeros(3), np.zeros(2), 0.0, np.ones(3), 0.0)
+    (obs, actions, next_obs, terminated), rewards = mixed_batch(teacher, self_buffer, 256, alpha)
+    assert obs.shape == (256, 3) and actions.shape == (256, 2) and terminated.shape == (256,)
+    assert int((obs[:, 0] == 1.0).sum()) == round(alpha * 256)
+    assert len(rewards) == 256 - round(alpha * 256)
+
+
+# ---------------------------------------------------------------------------------------------
+# demo files
+# ---------------------------------------------------------------------------------------------
+
+def recorded_episodes(env_id="Hopper-v5", n=3, seed=0):
+    env = make_env(env_id, seed=seed, sparse=False, time_feature=False)
+    return [rollout(env, lambda obs: env.action_space.sample()) for _ in range(n)]
+
+
+def test_demo_file_round_trip(tmp_path):
+    episodes = recorded_episodes()
+    path = tmp_path / "demo.npz"
+    save_demos(str(path), episodes, "Hopper-v5")
+    assert os.listdir(tmp_path) == ["demo.npz"]  # the temp file was renamed away
+    loaded = load_demos(str(path), "Hopper-v5", obs_dim=11, act_dim=3)
+    assert len(loaded) == 3
+    for ep, back in zip(episodes, loaded):
+        np.testing.assert_allclose(back["observations"], ep["observations"], rtol=1e-6)
+        np.testing.assert_allclose(back["next_observations"], ep["next_observations"], rtol=1e-6)
+        np.testing.assert_array_equal(back["actions"], ep["actions"])
+        assert back["terminated"] == ep["terminated"]
+        assert back["episodic_return"] == pytest.approx(ep["episodic_return"])
+        assert back["episodic_return"] == pytest.approx(float(np.sum(ep["rewards"])), rel=1e-5)
+    assert len(load_demos(str(path), "Hopper-v5", 11, 3, num_demos=1)) == 1
+    with np.load(path) as f:
+        assert str(f["env_id"]) == "Hopper-v5" and f["terminations"].sum() == 3
+        assert {"gymnasium_version", "mujoco_version"} <= set(f.files)
+
+
+def test_each_bad_demo_file_gives_a_clear_error(tmp_path):
+    path = str(tmp_path / "demo.npz")
+    with pytest.raises(ConfigError, match="not found"):
+        load_demos(path, "Hopper-v5", 11, 3)
+    save_demos(path, recorded_episodes(), "Hopper-v5")
+    with pytest.raises(ConfigError, match="for Hopper-v5, not Walker2d-v5"):
+        load_demos(path, "Walker2d-v5", 17, 6)
+    with pytest.raises(ConfigError, match="17-dim observations"):
+        load_demos(path, "Hopper-v5", 17, 3)
+    with pytest.raises(ConfigError, match="3 episodes, 4 were asked"):
+        load_demos(path, "Hopper-v5", 11, 3, num_demos=4)
+    with open(path, "r+b") as f:  # corrupt: truncated in the middle
+        f.truncate(os.path.getsize(path) // 2)
+    with pytest.raises(ConfigError, match="not a readable"):
+        load_demos(path, "Hopper-v5", 11, 3)
+    with open(path, "wb") as f:
+        f.write(b"this is not a zip file")
+    with pytest.raises(ConfigError, match="not a readable"):
+        load_demos(path, "Hopper-v5", 11, 3)
+    np.savez(path, observations=np.zeros((3, 11)))
+    with pytest.raises(ConfigError, match="lacks actions"):
+        load_demos(path, "Hopper-v5", 11, 3)
+
+
+@pytest.mark.parametrize("env_id", sorted(SHIPPED))
+def test_shipped_demos_load_and_are_sub_optimal(env_id):
+    env = make_env(env_id, seed=0, time_feature=False)
+    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    episodes = load_demos(os.path.join(HERE, "demos", f"{env_id}.npz"), env_id, obs_dim, act_dim)
+    low, high = SHIPPED[env_id]
+    assert len(episodes) == 10
+    for ep in episodes:
+        assert low <= ep["episodic_return"] <= high
+        assert ep["episodic_return"] == pytest.approx(float(np.sum(ep["rewards"], dtype=np.float64)), rel=1e-4)
+
+
+# ---------------------------------------------------------------------------------------------
+# td3.py and make_demos.py
+# ---------------------------------------------------------------------------------------------
+
+def test_td3_learns_a_one_step_bandit():
+    """Reward = -(a - 0.5)^2, every transition terminal: the actor must move toward 0.5."""
+    torch.manual_seed(0)
+    agent = TD3(obs_dim=1, act_dim=1, action_low=[-1.0], action_high=[1.0], hidden=(32, 32), lr=3e-3)
+    obs = torch.zeros(128, 1)
+    for _ in range(600):
+        actions = torch.rand(128, 1) * 2 - 1
+        rewards = -(actions[:, 0] - 0.5) ** 2
+        agent.update(obs, actions, rewards, obs, torch.ones(128))
+    assert abs(float(agent.act(np.zeros(1))[0]) - 0.5) < 0.1
+
+
+def test_make_demos_smoke_run_writes_a_loadable_file(tmp_path):
+    out = tmp_path / "Hopper-v5.npz"
+    proc = run_script("make_demos.py", "--env", "Hopper-v5", "--total-timesteps", "1500",
+                      "--learning-starts", "1000", "--eval-freq", "500", "--eval-episodes", "1",
+                      "--band", "-1000", "10000", "--num-episodes", "2", "--output", str(out))
+    assert proc.returncode == 0, proc.stderr
+    assert len(load_demos(str(out), "Hopper-v5", 11, 3)) == 2
+
+
+def test_make_demos_bad_input_is_one_line():
+    assert_one_line_error(run_script("make_demos.py", "--env", "NoSuchEnv-v5", "--band", "0", "1"))
+    assert_one_line_error(run_script("make_demos.py", "--env", "Hopper-v5", "--num-episodes", "0"))
+    assert_one_line_error(run_script("make_demos.py", "--env", "Pendulum-v1"))  # no default band
