@@ -13,6 +13,7 @@ transitions the wrappers below would have produced online, with the same helper 
 """
 
 import argparse
+import copy
 import sys
 
 import gymnasium as gym
@@ -226,3 +227,46 @@ def rollout(env, policy):
     return {"observations": observations, "actions": actions, "rewards": rewards,
             "next_observations": next_observations, "terminated": bool(terminated),
             "truncated": bool(truncated), "episodic_return": info["episodic_return"]}
+
+
+# ---------------------------------------------------------------------------------------------
+# Exact mid-episode checkpoints: the env's full state (simulator, wrappers' counters, RNGs)
+# ---------------------------------------------------------------------------------------------
+
+_PLAIN = (bool, int, float, str, type(None), np.number, np.ndarray, tuple, dict)
+
+
+def get_env_state(env):
+    """Everything needed to continue `env` exactly where it is, also in mid-episode."""
+    layers, layer = [], env
+    while isinstance(layer, gym.Wrapper):
+        layers.append({k: copy.deepcopy(v) for k, v in vars(layer).items() if k != "env" and isinstance(v, _PLAIN)})
+        layer = layer.env
+    base = layer
+    state = {"wrappers": layers, "np_random": copy.deepcopy(base.np_random.bit_generator.state),
+             "action_space": copy.deepcopy(env.action_space.np_random.bit_generator.state)}
+    if hasattr(base, "model") and hasattr(base, "data"):  # MuJoCo: the full integration state
+        import mujoco
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        sim = np.empty(mujoco.mj_stateSize(base.model, spec))
+        mujoco.mj_getState(base.model, base.data, sim, spec)
+        state["mujoco"] = sim
+    elif hasattr(base, "state"):  # classic-control style envs
+        state["base_state"] = copy.deepcopy(base.state)
+    return state
+
+
+def set_env_state(env, state):
+    layer = env
+    for saved in state["wrappers"]:
+        for k, v in saved.items():
+            setattr(layer, k, copy.deepcopy(v))
+        layer = layer.env
+    layer.np_random.bit_generator.state = state["np_random"]
+    env.action_space.np_random.bit_generator.state = state["action_space"]
+    if "mujoco" in state:
+        import mujoco
+        mujoco.mj_setState(layer.model, layer.data, state["mujoco"], mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_forward(layer.model, layer.data)
+    elif "base_state" in state:
+        layer.state = copy.deepcopy(state["base_state"])

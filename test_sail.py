@@ -305,3 +305,159 @@ def test_make_demos_bad_input_is_one_line():
     assert_one_line_error(run_script("make_demos.py", "--env", "NoSuchEnv-v5", "--band", "0", "1"))
     assert_one_line_error(run_script("make_demos.py", "--env", "Hopper-v5", "--num-episodes", "0"))
     assert_one_line_error(run_script("make_demos.py", "--env", "Pendulum-v1"))  # no default band
+
+
+# ---------------------------------------------------------------------------------------------
+# sail.py
+# ---------------------------------------------------------------------------------------------
+
+import csv  # noqa: E402
+import json  # noqa: E402
+
+import torch.nn.functional as F  # noqa: E402
+
+from sail import CSV_COLUMNS, Discriminator, discriminator_loss, shaped_reward  # noqa: E402
+
+TINY = ["--hidden", "32", "32", "--disc-hidden", "32", "32", "--threads", "1", "--eval-episodes", "1"]
+
+
+def read_csv(run_dir):
+    with open(os.path.join(run_dir, "progress.csv")) as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def poor_hopper_demos(tmp_path_factory):
+    """Hopper episodes of a deliberately poor 'teacher': the worst of 30 random episodes."""
+    env = make_env("Hopper-v5", seed=0, sparse=False, time_feature=False)
+    episodes = sorted((rollout(env, lambda obs: env.action_space.sample()) for _ in range(30)),
+                      key=lambda ep: ep["episodic_return"])
+    path = str(tmp_path_factory.mktemp("demos") / "Hopper-v5.npz")
+    save_demos(path, episodes[:4], "Hopper-v5")
+    return path
+
+
+def test_sail_reward_is_softplus_of_the_logit_without_overflow():
+    logits = torch.tensor([-50.0, -3.0, 0.0, 3.0, 15.0])
+    torch.testing.assert_close(F.softplus(logits), -torch.log(1 - torch.sigmoid(logits.double())).float())
+    disc = Discriminator(obs_dim=1, act_dim=1, hidden=[8])
+    with torch.no_grad():
+        disc.net[-1].bias.fill_(1000.0)  # a saturated D: sigmoid(logit) == 1.0 in float32
+    reward = shaped_reward(disc, torch.zeros(4, 1), torch.zeros(4, 1), "sail")
+    assert torch.isfinite(reward).all() and (reward > 900).all()
+
+
+def test_discriminator_rewards_teacher_data_more_after_training():
+    torch.manual_seed(0)
+    disc = Discriminator(obs_dim=4, act_dim=2, hidden=[32, 32])
+    optimizer = torch.optim.Adam(disc.parameters(), lr=1e-3)
+    teacher = lambda n: (torch.randn(n, 4) + 2.0, torch.rand(n, 2) * 0.5 + 0.5)  # noqa: E731
+    agent = lambda n: (torch.randn(n, 4) - 2.0, torch.rand(n, 2) * 0.5 - 1.0)  # noqa: E731
+    for _ in range(200):
+        (t_obs, t_act), (b_obs, b_act) = teacher(128), agent(128)
+        disc.update_obs_stats(torch.cat([t_obs, b_obs]))
+        loss, d_teacher, d_self = discriminator_loss(disc, t_obs, t_act, b_obs, b_act, 0.01, 10.0)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert d_teacher > 0.8 and d_self < 0.2
+    assert shaped_reward(disc, *teacher(500), "sail").mean() > 3 * shaped_reward(disc, *agent(500), "sail").mean()
+
+
+SMOKE = {
+    "sail": [],
+    "fixed-alpha": ["--fixed-alpha"],
+    "no-lfd": ["--no-lfd"],
+    "no-adaptation": ["--no-adaptation"],
+    "on-policy-disc": ["--on-policy-disc"],
+    "anneal": ["--alpha-anneal-steps", "500"],
+    "dac": ["--algo", "dac"],
+    "td3": ["--algo", "td3"],
+    "bc": ["--algo", "bc", "--bc-steps", "300", "--eval-freq", "100"],
+}
+
+
+@pytest.mark.parametrize("name", sorted(SMOKE))
+def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos):
+    proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--num-demos", "1",
+                      "--total-timesteps", "1600", "--learning-starts", "1000", "--eval-freq", "400",
+                      "--disc-freq", "200", "--output-dir", str(tmp_path), "--run-name", "run", "--save-model",
+                      *TINY, *SMOKE[name])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    run_dir = tmp_path / "run"
+    rows = read_csv(run_dir)
+    assert list(rows[0]) == CSV_COLUMNS
+    assert all(np.isfinite(float(r["eval_return"])) for r in rows)
+    model = torch.load(run_dir / "model.pt", weights_only=False)
+    assert set(model["actor"]) and model["env"] == "Hopper-v5"
+    config = json.load(open(run_dir / "config.json"))
+    assert "sail.py" in config["command"] and config["total_timesteps"] == 1600
+    if name == "bc":
+        assert [int(r["updates"]) for r in rows] == [100, 200, 300]
+        return
+    assert [int(r["global_step"]) for r in rows] == [400, 800, 1200, 1600]
+    assert int(rows[-1]["updates"]) == 601
+    alphas = [float(r["alpha"]) for r in rows]
+    if name in ("no-lfd", "dac", "td3"):
+        assert alphas == [0.0] * 4
+    if name == "fixed-alpha":
+        assert alphas == [0.5] * 4
+    if name in ("no-adaptation", "dac", "td3"):
+        assert all(int(r["promotions"]) == 0 for r in rows)
+    if name == "td3":
+        assert all(r["disc_loss"] == "nan" for r in rows)
+    else:
+        assert 0.0 < float(rows[-1]["disc_teacher"]) < 1.0
+
+
+def test_promotion_switches_alpha_inside_the_loop(tmp_path, poor_hopper_demos):
+    """The poor teacher's return is the lowest of 30 random episodes: the agent's own episodes
+    beat it, are promoted, and the dynamic alpha drops from 0.5 to 0 at the first promotion. The
+    small teacher capacity makes the worst episodes leave, so the threshold rises."""
+    proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "1000",
+                      "--learning-starts", "1", "--eval-freq", "20", "--disc-freq", "200", "--update-every", "1000",
+                      "--teacher-capacity", "200", "--output-dir", str(tmp_path), "--run-name", "run", *TINY)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = read_csv(tmp_path / "run")
+    first = next(i for i, r in enumerate(rows) if int(r["promotions"]) > 0)
+    assert all(float(r["alpha"]) == 0.5 for r in rows[:first])
+    assert all(float(r["alpha"]) == 0.0 for r in rows[first:])
+    assert int(rows[-1]["promotions"]) > int(rows[-1]["teacher_episodes"]) > 1  # some were evicted
+    assert float(rows[-1]["teacher_threshold"]) > float(rows[0]["teacher_threshold"])
+
+
+def test_resume_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos):
+    common = ["sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--learning-starts", "500",
+              "--eval-freq", "250", "--disc-freq", "100", "--seed", "3", "--save-model", *TINY]
+    straight = run_script(*common, "--total-timesteps", "1500", "--output-dir", str(tmp_path), "--run-name", "a")
+    assert straight.returncode == 0, straight.stderr[-3000:]
+    first = run_script(*common, "--total-timesteps", "880", "--output-dir", str(tmp_path), "--run-name", "b")
+    assert first.returncode == 0, first.stderr[-3000:]
+    resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1500")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    drop = ("steps_per_second", "time")
+    rows_a = [{k: v for k, v in r.items() if k not in drop} for r in read_csv(tmp_path / "a")]
+    rows_b = [{k: v for k, v in r.items() if k not in drop} for r in read_csv(tmp_path / "b")]
+    assert len(rows_a) == 6 and rows_a == rows_b
+    model_a = torch.load(tmp_path / "a" / "model.pt", weights_only=False)
+    model_b = torch.load(tmp_path / "b" / "model.pt", weights_only=False)
+    for key in ("actor", "critic", "discriminator"):
+        for name, value in model_a[key].items():
+            torch.testing.assert_close(value, model_b[key][name], rtol=0, atol=0)
+
+
+def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos):
+    out = ["--output-dir", str(tmp_path / "runs")]
+    assert_one_line_error(run_script("sail.py", "--env", "NoSuchEnv-v5", *out))
+    assert_one_line_error(run_script("sail.py", "--env", "Walker2d-v5", "--demos", poor_hopper_demos, *out))
+    assert_one_line_error(run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos,
+                                     "--num-demos", "5", *out))
+    assert_one_line_error(run_script("sail.py", "--env", "Hopper-v5", "--demos", str(tmp_path / "none.npz"), *out))
+    assert_one_line_error(run_script("sail.py", "--total-timesteps", "-5", *out))
+    assert_one_line_error(run_script("sail.py", "--alpha", "1.5", *out))
+    assert_one_line_error(run_script("sail.py", "--resume", str(tmp_path / "nothing")))
+    assert not os.path.exists(tmp_path / "runs")  # nothing was started
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    assert_one_line_error(run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos,
+                                     "--output-dir", str(blocker / "runs")))
