@@ -404,13 +404,13 @@ def train(args):
                         rewards = shaped_reward(disc, b_obs, b_act, args.reward)
                     stats.update(agent.update(b_obs, b_act, rewards, b_next_obs, b_term), reward_mean=rewards.mean())
                 s["updates"] = agent.num_updates
+                check_finite(stats, run_dir, bar)  # stop before a diverged actor acts in the env
 
         # 5. evaluation of the deterministic policy; the CSV row; a checkpoint
         if global_step % args.eval_freq == 0:
             now = time.perf_counter()
             sps = (global_step - tick_step) / (now - tick)
             s["train_time"] += now - tick
-            check_finite(stats, run_dir)
             returns = [rollout(eval_env, agent.act)["episodic_return"] for _ in range(args.eval_episodes)]
             row = {"global_step": global_step, "eval_return": np.mean(returns), "eval_return_std": np.std(returns),
                    "train_episodic_return": s["train_episodic_return"],
@@ -426,13 +426,11 @@ def train(args):
                             alpha=s["alpha"], refresh=False)
             tick, tick_step = time.perf_counter(), global_step
         if global_step % args.checkpoint_freq == 0:
-            check_finite(stats, run_dir)
             save_checkpoint(run_dir, s, agent, disc, disc_optimizer, self_buffer, teacher_buffer, env, eval_env,
                             rng, obs)
         bar.update(1)
     bar.close()
 
-    check_finite(stats, run_dir)
     save_checkpoint(run_dir, s, agent, disc, disc_optimizer, self_buffer, teacher_buffer, env, eval_env, rng, obs)
     if args.save_model:
         save_model(run_dir, agent, disc, args)
@@ -478,9 +476,10 @@ def round_float(v):
     return round(float(v), 4) if isinstance(v, (float, np.floating)) else v
 
 
-def check_finite(stats, run_dir):
+def check_finite(stats, run_dir, bar):
     bad = {k: float(v) for k, v in stats.items() if not math.isfinite(float(v))}
     if bad:
+        bar.close()
         sys.exit(f"sail.py: error: non-finite loss {bad}; stopped, the last good checkpoint in {run_dir} is kept")
 
 
