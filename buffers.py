@@ -169,10 +169,16 @@ def save_demos(path, episodes, env_id):
         "gymnasium_version": np.array(_version("gymnasium")),
         "mujoco_version": np.array(_version("mujoco")),
     }
+    atomic_write(path, lambda f: np.savez_compressed(f, **data))
+
+
+def atomic_write(path, write):
+    """Calls write(file) on a temp file beside `path`, then renames it to `path`: an interrupted
+    write never leaves a broken file behind."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "wb") as f:
-        np.savez_compressed(f, **data)
+        write(f)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)

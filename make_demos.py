@@ -16,8 +16,8 @@ import time
 import numpy as np
 import torch
 
-from buffers import ReplayBuffer, save_demos
-from envs import ArgumentParser, ConfigError, make_env, rollout
+from buffers import ReplayBuffer, atomic_write, save_demos
+from envs import ArgumentParser, ConfigError, get_env_state, make_env, rollout, set_env_state
 from td3 import TD3
 
 # teacher return bands (low, high) at the paper's teacher quality
@@ -52,6 +52,9 @@ def parse_args(argv=None):
     p.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate of actor and critic")
     p.add_argument("--gamma", type=float, default=0.99, help="discount")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    p.add_argument("--checkpoint", help="checkpoint file, written every --checkpoint-freq steps and "
+                   "resumed from if it exists (default: none)")
+    p.add_argument("--checkpoint-freq", type=int, default=25_000, help="env steps between checkpoints")
     args = p.parse_args(argv)
     if args.band is None:
         if args.env not in BANDS:
@@ -60,7 +63,7 @@ def parse_args(argv=None):
     if args.band[0] >= args.band[1]:
         p.error("--band needs LOW < HIGH")
     for name in ("num_episodes", "total_timesteps", "eval_freq", "eval_episodes", "record_attempts",
-                 "batch_size", "threads"):
+                 "batch_size", "threads", "checkpoint_freq"):
         if getattr(args, name) <= 0:
             p.error(f"--{name.replace('_', '-')} must be positive")
     if args.learning_starts < 0:
@@ -88,8 +91,19 @@ def main(argv=None):
     in_band = lambda ret: band_low <= ret <= band_high  # noqa: E731
 
     obs, _ = env.reset()
+    first_step = 1
+    if args.checkpoint and os.path.isfile(args.checkpoint):
+        state = torch.load(args.checkpoint, weights_only=False)
+        agent.load_state_dict(state["agent"])
+        buffer.load_state_dict(state["buffer"])
+        set_env_state(env, state["env"])
+        set_env_state(eval_env, state["eval_env"])
+        rng.bit_generator.state = state["numpy_rng"]
+        torch.set_rng_state(state["torch_rng"])
+        obs, first_step = state["obs"], state["global_step"] + 1
+        print(f"resumed from {args.checkpoint} at step {state['global_step']}", flush=True)
     start = time.time()
-    for global_step in range(1, args.total_timesteps + 1):
+    for global_step in range(first_step, args.total_timesteps + 1):
         if global_step <= args.learning_starts:
             action = env.action_space.sample()
         else:
@@ -105,11 +119,17 @@ def main(argv=None):
             obs_b, act_b, rew_b, next_obs_b, term_b = buffer.sample(args.batch_size)
             agent.update(obs_b, act_b, rew_b, next_obs_b, term_b)
 
+        if args.checkpoint and global_step % args.checkpoint_freq == 0:
+            state = {"agent": agent.state_dict(), "buffer": buffer.state_dict(), "env": get_env_state(env),
+                     "eval_env": get_env_state(eval_env), "numpy_rng": rng.bit_generator.state,
+                     "torch_rng": torch.get_rng_state(), "obs": obs, "global_step": global_step}
+            atomic_write(args.checkpoint, lambda f: torch.save(state, f))  # noqa: B023
+
         if global_step % args.eval_freq == 0 and global_step > args.learning_starts:  # a trained teacher only
             returns = [rollout(eval_env, agent.act)["episodic_return"] for _ in range(args.eval_episodes)]
             mean = float(np.mean(returns))
             print(f"step {global_step}: teacher eval return {mean:.1f} +- {np.std(returns):.1f} "
-                  f"({global_step / (time.time() - start):.0f} steps/s)", flush=True)
+                  f"({(global_step - first_step + 1) / (time.time() - start):.0f} steps/s)", flush=True)
             if not in_band(mean):
                 continue
             episodes = []

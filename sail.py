@@ -31,7 +31,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from buffers import ReplayBuffer, TeacherBuffer, load_demos, mixed_batch
+from buffers import ReplayBuffer, TeacherBuffer, atomic_write, load_demos, mixed_batch
 from envs import ArgumentParser, ConfigError, add_features, get_env_state, make_env, rollout, set_env_state
 from td3 import TD3, make_adam
 
@@ -218,15 +218,6 @@ def shaped_reward(disc, obs, actions, kind):
 CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "train_episodic_return", "teacher_threshold",
                "teacher_episodes", "promotions", "alpha", "disc_loss", "disc_teacher", "disc_self",
                "reward_mean", "critic_loss", "actor_loss", "q", "updates", "steps_per_second", "time"]
-
-
-def atomic_write(path, write):
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "wb") as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def write_csv(path, rows):
