@@ -107,8 +107,7 @@ def main(argv=None):
         if global_step <= args.learning_starts:
             action = env.action_space.sample()
         else:
-            noise = rng.normal(0.0, args.exploration_noise * (high - low) / 2, size=act_dim)
-            action = np.clip(agent.act(obs) + noise, low, high).astype(np.float32)
+            action = agent.explore(obs, args.exploration_noise, rng)
         next_obs, reward, terminated, truncated, info = env.step(action)
         buffer.add(obs, action, reward, next_obs, terminated)
         obs = next_obs

@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from buffers import ReplayBuffer, TeacherBuffer, atomic_write, load_demos, mixed_batch
 from envs import ArgumentParser, ConfigError, add_features, get_env_state, make_env, rollout, set_env_state
-from td3 import TD3, make_adam
+from td3 import MLP, TD3, make_adam
 
 # Presets of --algo: each sets defaults that explicit flags still override.
 PRESETS = {
@@ -157,11 +157,7 @@ class Discriminator(nn.Module):
 
     def __init__(self, obs_dim, act_dim, hidden):
         super().__init__()
-        layers, d = [], obs_dim + act_dim
-        for h in hidden:
-            layers += [nn.Linear(d, h), nn.Tanh()]
-            d = h
-        self.net = nn.Sequential(*layers, nn.Linear(d, 1))
+        self.net = MLP([obs_dim + act_dim, *hidden, 1], "tanh")
         self.register_buffer("obs_mean", torch.zeros(obs_dim))
         self.register_buffer("obs_var", torch.ones(obs_dim))
         self.register_buffer("obs_count", torch.tensor(1e-4))
@@ -209,6 +205,36 @@ def shaped_reward(disc, obs, actions, kind):
     if kind == "sail":
         return F.softplus(logit)  # -log(1 - D) = -log(1 - sigmoid(x)) = softplus(x), no overflow
     return logit  # airl: log D - log(1 - D) = x
+
+
+def train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args):
+    """--disc-steps minibatches of Eq. (discriminator): R_E labelled 1, R_B (or its recent part) 0."""
+    device = disc.obs_mean.device
+    for _ in range(args.disc_steps):
+        t_obs, t_act, _, _ = teacher_buffer.sample(args.disc_batch_size)
+        if args.on_policy_disc:
+            b_obs, b_act, *_ = self_buffer.sample_recent(args.disc_batch_size, args.on_policy_window)
+        else:
+            b_obs, b_act, *_ = self_buffer.sample(args.disc_batch_size)
+        t_obs, t_act, b_obs, b_act = (x.to(device) for x in (t_obs, t_act, b_obs, b_act))
+        disc.update_obs_stats(torch.cat([t_obs, b_obs]))
+        loss, d_teacher, d_self = discriminator_loss(disc, t_obs, t_act, b_obs, b_act,
+                                                     args.entropy_coef, args.grad_penalty)
+        disc_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        disc_optimizer.step()
+    return {"disc_loss": loss.detach(), "disc_teacher": d_teacher.detach(), "disc_self": d_self.detach()}
+
+
+def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args):
+    """One TD3 step on a batch from alpha * R_E + (1 - alpha) * R_B, with the reward r'(s, a) of D."""
+    batch, env_rewards = mixed_batch(teacher_buffer, self_buffer, args.batch_size, alpha)
+    obs, actions, next_obs, terminated = (x.to(agent.device) for x in batch)
+    if args.reward == "env":  # the TD3-sparse baseline: the env's own (sparse episodic) reward
+        rewards = env_rewards.to(agent.device)
+    else:
+        rewards = shaped_reward(disc, obs, actions, args.reward)
+    return agent.update(obs, actions, rewards, next_obs, terminated) | {"reward_mean": rewards.mean()}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -329,7 +355,6 @@ def train(args):
         interrupted = True
     signal.signal(signal.SIGINT, on_sigint)
 
-    to_device = lambda batch: [x.to(device, non_blocking=True) for x in batch]  # noqa: E731
     bar = tqdm(total=args.total_timesteps, initial=s["global_step"], desc=f"{args.algo} {args.env}",
                unit="step", dynamic_ncols=True, mininterval=1.0)
     tick, tick_step = time.perf_counter(), s["global_step"]
@@ -341,8 +366,7 @@ def train(args):
         if global_step <= args.learning_starts:
             action = env.action_space.sample()
         else:
-            noise = rng.normal(0.0, args.exploration_noise * (high - low) / 2, size=act_dim)
-            action = np.clip(agent.act(obs) + noise, low, high).astype(np.float32)
+            action = agent.explore(obs, args.exploration_noise, rng)
         next_obs, reward, terminated, truncated, info = env.step(action)
         self_buffer.add(obs, action, reward, next_obs, terminated)
         obs = next_obs
@@ -369,31 +393,12 @@ def train(args):
         if global_step >= args.learning_starts:
             # 3. discriminator: teacher samples vs the whole R_B (off-policy), or recent ones
             if args.reward != "env" and (global_step - args.learning_starts) % args.disc_freq == 0:
-                for _ in range(args.disc_steps):
-                    t_obs, t_act, _, _ = to_device(teacher_buffer.sample(args.disc_batch_size))
-                    if args.on_policy_disc:
-                        b_obs, b_act, *_ = self_buffer.sample_recent(args.disc_batch_size, args.on_policy_window)
-                    else:
-                        b_obs, b_act, *_ = self_buffer.sample(args.disc_batch_size)
-                    b_obs, b_act = to_device((b_obs, b_act))
-                    disc.update_obs_stats(torch.cat([t_obs, b_obs]))
-                    d_loss, d_teacher, d_self = discriminator_loss(disc, t_obs, t_act, b_obs, b_act,
-                                                                   args.entropy_coef, args.grad_penalty)
-                    disc_optimizer.zero_grad(set_to_none=True)
-                    d_loss.backward()
-                    disc_optimizer.step()
-                stats.update(disc_loss=d_loss.detach(), disc_teacher=d_teacher.detach(), disc_self=d_self.detach())
+                stats.update(train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args))
 
             # 4. TD3 on the mixture alpha * R_E + (1 - alpha) * R_B, rewarded by r'(s, a)
             if global_step % args.update_every == 0:
                 for _ in range(args.update_every):
-                    batch, env_rewards = mixed_batch(teacher_buffer, self_buffer, args.batch_size, s["alpha"])
-                    b_obs, b_act, b_next_obs, b_term = to_device(batch)
-                    if args.reward == "env":
-                        rewards = env_rewards.to(device)
-                    else:
-                        rewards = shaped_reward(disc, b_obs, b_act, args.reward)
-                    stats.update(agent.update(b_obs, b_act, rewards, b_next_obs, b_term), reward_mean=rewards.mean())
+                    stats.update(td3_update(agent, disc, teacher_buffer, self_buffer, s["alpha"], args))
                 s["updates"] = agent.num_updates
                 check_finite(stats, run_dir, bar)  # stop before a diverged actor acts in the env
 

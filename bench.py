@@ -1,0 +1,311 @@
+"""Speed of SAIL's training against a plain CleanRL-style TD3 loop, measured side by side.
+
+    python bench.py                      # Walker2d-v5 sizes, 2 threads, about 2 minutes
+    python bench.py --threads 1
+
+Four measurements, each in this one process, so that both loops see the same machine state:
+  1. the compute limit: GFLOP/s of a 256x256x256 float32 matmul, through torch.mm (MKL) and
+     through oneDNN (td3.linear), and the FLOPs of one SAIL update;
+  2. updates on the same random data: the plain TD3 update against SAIL's update (TD3 step,
+     discriminator reward of the batch, discriminator training amortised over --disc-freq);
+  3. end-to-end on the real env: env steps/s after the warm-up, the plain loop against
+     sail.py itself (its progress.csv, which excludes evaluation);
+  4. peak memory: a Walker2d run's state with a full 1M-transition self buffer, a checkpoint
+     written from it.
+The plain loop is CleanRL's td3_continuous_action.py reduced to its update: two nn.Linear
+critics, one update per env step, a Python loop for Polyak averaging, numpy replay storage
+copied to torch for every batch.
+"""
+
+import copy
+import csv
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+import sail
+import td3
+from buffers import ReplayBuffer, TeacherBuffer
+from envs import ArgumentParser, make_env
+
+
+def parse_args():
+    p = ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--env", default="Walker2d-v5", help="env of the end-to-end part and the sizes")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--hidden", type=int, default=256, help="hidden size of both layers of every network")
+    p.add_argument("--batch-size", type=int, default=256, help="batch size")
+    p.add_argument("--updates", type=int, default=1000, help="timed updates of part 2, per loop")
+    p.add_argument("--env-steps", type=int, default=3000, help="timed env steps of part 3, per loop")
+    p.add_argument("--warmup", type=int, default=1000, help="random env steps before the timed ones")
+    p.add_argument("--skip-memory", action="store_true", help="skip part 4")
+    args = p.parse_args()
+    for name in ("threads", "hidden", "batch_size", "updates", "env_steps", "warmup"):
+        if getattr(args, name) <= 0:
+            p.error(f"--{name.replace('_', '-')} must be positive")
+    return args
+
+
+# ---------------------------------------------------------------------------------------------
+# The plain reference: CleanRL's TD3 update
+# ---------------------------------------------------------------------------------------------
+
+class QNetwork(nn.Module):
+    def __init__(self, obs_dim, act_dim, hidden):
+        super().__init__()
+        self.fc1, self.fc2, self.fc3 = nn.Linear(obs_dim + act_dim, hidden), nn.Linear(hidden, hidden), nn.Linear(hidden, 1)
+
+    def forward(self, x, a):
+        x = torch.cat([x, a], 1)
+        return self.fc3(F.relu(self.fc2(F.relu(self.fc1(x)))))
+
+
+class PlainActor(nn.Module):
+    def __init__(self, obs_dim, act_dim, hidden):
+        super().__init__()
+        self.fc1, self.fc2, self.fc_mu = nn.Linear(obs_dim, hidden), nn.Linear(hidden, hidden), nn.Linear(hidden, act_dim)
+
+    def forward(self, x):
+        return torch.tanh(self.fc_mu(F.relu(self.fc2(F.relu(self.fc1(x))))))
+
+
+class PlainTD3:
+    """CleanRL's update, hyperparameters as TD3's defaults; actions in [-1, 1]."""
+
+    def __init__(self, obs_dim, act_dim, hidden, capacity):
+        self.actor, self.qf1, self.qf2 = PlainActor(obs_dim, act_dim, hidden), *(QNetwork(obs_dim, act_dim, hidden) for _ in range(2))
+        self.target_actor, self.qf1_target, self.qf2_target = map(copy.deepcopy, (self.actor, self.qf1, self.qf2))
+        self.q_optimizer = torch.optim.Adam(list(self.qf1.parameters()) + list(self.qf2.parameters()), lr=3e-4)
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=3e-4)
+        self.storage = {k: np.zeros((capacity, d), np.float32) for k, d in
+                        (("obs", obs_dim), ("actions", act_dim), ("rewards", 1), ("next_obs", obs_dim), ("dones", 1))}
+        self.size, self.step = 0, 0
+
+    def add(self, obs, action, reward, next_obs, done):
+        for k, v in zip(self.storage, (obs, action, reward, next_obs, done)):
+            self.storage[k][self.size % len(self.storage[k])] = v
+        self.size += 1
+
+    def act(self, obs):
+        with torch.no_grad():
+            action = self.actor(torch.Tensor(obs).unsqueeze(0))[0]
+            action += torch.normal(0, torch.full_like(action, 0.1))
+        return action.numpy().clip(-1, 1)
+
+    def update(self, batch_size):
+        self.step += 1
+        idx = np.random.randint(0, min(self.size, len(self.storage["obs"])), size=batch_size)
+        obs, actions, rewards, next_obs, dones = (torch.tensor(v[idx]) for v in self.storage.values())
+        with torch.no_grad():
+            clipped_noise = (torch.randn_like(actions) * 0.2).clamp(-0.5, 0.5)
+            next_actions = (self.target_actor(next_obs) + clipped_noise).clamp(-1, 1)
+            min_q = torch.min(self.qf1_target(next_obs, next_actions), self.qf2_target(next_obs, next_actions))
+            next_q_value = rewards.flatten() + (1 - dones.flatten()) * 0.99 * min_q.view(-1)
+        qf_loss = (F.mse_loss(self.qf1(obs, actions).view(-1), next_q_value)
+                   + F.mse_loss(self.qf2(obs, actions).view(-1), next_q_value))
+        self.q_optimizer.zero_grad()
+        qf_loss.backward()
+        self.q_optimizer.step()
+        if self.step % 2 == 0:
+            actor_loss = -self.qf1(obs, self.actor(obs)).mean()
+            self.actor_optimizer.zero_grad()
+            actor_loss.backward()
+            self.actor_optimizer.step()
+            for net, target in ((self.actor, self.target_actor), (self.qf1, self.qf1_target), (self.qf2, self.qf2_target)):
+                for param, target_param in zip(net.parameters(), target.parameters()):
+                    target_param.data.copy_(0.005 * param.data + 0.995 * target_param.data)
+
+
+# ---------------------------------------------------------------------------------------------
+# Measurements
+# ---------------------------------------------------------------------------------------------
+
+def per_second(fn, n, repeats=3):
+    """Best rate of `repeats` timings of n calls (the least disturbed by other processes)."""
+    best = 0.0
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(n):
+            fn()
+        best = max(best, n / (time.perf_counter() - start))
+    return best
+
+
+def matmul_gflops(size=256):
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    out = torch.empty(size, size)
+    flops = 2 * size**3
+    mkl = per_second(lambda: torch.mm(a, b, out=out), 2000) * flops / 1e9
+    onednn = per_second(lambda: td3.linear(a, b), 2000) * flops / 1e9
+    return mkl, onednn
+
+
+def update_flops(obs_dim, act_dim, hidden, batch_size, discriminator=True, policy_delay=2):
+    """Matmul FLOPs of one TD3 update (with SAIL's reward: `discriminator`); a backward pass
+    costs twice its forward pass."""
+    mlp = lambda sizes: 2 * sum(a * b for a, b in zip(sizes[:-1], sizes[1:]))  # noqa: E731
+    critic = mlp([obs_dim + act_dim, hidden, hidden, 1])
+    actor = mlp([obs_dim, hidden, hidden, act_dim])
+    target = actor + 2 * critic                     # y = r + gamma min_i Q'_i(s', pi'(s') + noise)
+    critic_step = 3 * 2 * critic                    # both critics, forward and backward
+    reward = critic if discriminator else 0         # D(s, a), the critic's sizes
+    actor_step = (3 * actor + 2 * critic) / policy_delay  # Q1 backward to its input only
+    return batch_size * (target + critic_step + reward + actor_step)
+
+
+def bench_args(args, env_id, output_dir, total):
+    return sail.parse_args(["--env", env_id, "--threads", str(args.threads), "--hidden", str(args.hidden),
+                            str(args.hidden), "--disc-hidden", str(args.hidden), str(args.hidden),
+                            "--batch-size", str(args.batch_size), "--learning-starts", str(args.warmup),
+                            "--total-timesteps", str(total), "--eval-freq", str(args.warmup),
+                            "--eval-episodes", "1", "--output-dir", output_dir, "--checkpoint-freq", str(10**9)])
+
+
+def updates_on_random_data(args, obs_dim, act_dim):
+    """Part 2: updates/s of both on the same random transitions (one teacher episode, 1e5 own)."""
+    rng = np.random.default_rng(0)
+    n = 100_000
+    data = [rng.standard_normal((n, obs_dim)).astype(np.float32), rng.uniform(-1, 1, (n, act_dim)).astype(np.float32),
+            np.zeros(n, np.float32), rng.standard_normal((n, obs_dim)).astype(np.float32), np.zeros(n, np.float32)]
+    plain = PlainTD3(obs_dim, act_dim, args.hidden, n)
+    for k, v in zip(plain.storage, data):
+        plain.storage[k][:] = v.reshape(n, -1)
+    plain.size = n
+
+    sargs = bench_args(args, args.env, tempfile.gettempdir(), 1)
+    self_buffer = ReplayBuffer(obs_dim, act_dim, n)
+    for t, v in zip(self_buffer.tensors(), data):
+        t.copy_(torch.from_numpy(v))
+    self_buffer.size = n
+    teacher_buffer = TeacherBuffer(10_000)
+    teacher_buffer.add_episode(0.0, *(torch.from_numpy(data[i][:1000]) for i in (0, 1, 3, 4)))
+    agent = td3.TD3(obs_dim, act_dim, -np.ones(act_dim), np.ones(act_dim), hidden=[args.hidden] * 2)
+    disc = sail.Discriminator(obs_dim, act_dim, [args.hidden] * 2)
+    disc_optimizer = td3.make_adam(disc.parameters(), sargs.disc_lr)
+
+    def sail_update():
+        if agent.num_updates % sargs.disc_freq == 0:  # D is trained every --disc-freq env steps
+            sail.train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, sargs)
+        sail.td3_update(agent, disc, teacher_buffer, self_buffer, 0.5, sargs)
+
+    for fn in (lambda: plain.update(args.batch_size), sail_update):  # warm both up
+        for _ in range(50):
+            fn()
+    rates = {"plain": [], "sail": []}
+    for _ in range(3):  # interleaved, so that a disturbance hits both
+        rates["plain"].append(per_second(lambda: plain.update(args.batch_size), args.updates // 3, 1))
+        rates["sail"].append(per_second(sail_update, args.updates // 3, 1))
+    return max(rates["plain"]), max(rates["sail"])
+
+
+def plain_loop_env_steps(args):
+    """Part 3, plain: CleanRL's loop on the same env (sparse reward, time feature) as SAIL's."""
+    env = make_env(args.env, seed=1)
+    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    plain = PlainTD3(obs_dim, act_dim, args.hidden, args.warmup + args.env_steps)
+    obs, _ = env.reset()
+    start = None
+    for step in range(args.warmup + args.env_steps):
+        if step == args.warmup:
+            start = time.perf_counter()
+        action = env.action_space.sample() if step < args.warmup else plain.act(obs)
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        plain.add(obs, action, reward, next_obs, terminated)
+        obs = next_obs if not (terminated or truncated) else env.reset()[0]
+        if step >= args.warmup:
+            plain.update(args.batch_size)
+    return args.env_steps / (time.perf_counter() - start)
+
+
+def sail_env_steps(args):
+    """Part 3, SAIL: sail.py itself. Its CSV's steps_per_second excludes evaluation; the first
+    row (every --warmup steps) is the warm-up, the others are timed."""
+    with tempfile.TemporaryDirectory() as tmp:
+        sargs = bench_args(args, args.env, tmp, args.warmup + args.env_steps)
+        sail.train(sargs)
+        run_dir = os.path.join(tmp, os.listdir(tmp)[0])
+        with open(os.path.join(run_dir, "progress.csv")) as f:
+            rows = list(csv.DictReader(f))
+    steps = [float(r["global_step"]) for r in rows]
+    seconds = [(b - a) / float(r["steps_per_second"]) for a, b, r in zip(steps, steps[1:], rows[1:])]
+    return (steps[-1] - steps[0]) / sum(seconds)
+
+
+MEMORY_SCRIPT = """
+import resource, sys, tempfile, torch, numpy as np
+import sail
+args = sail.parse_args(["--env", "Walker2d-v5", "--output-dir", tempfile.mkdtemp(), "--threads", "{threads}"])
+# a 1M-step run's state: its buffer full (every page written), networks, D, both envs
+env, eval_env = sail.make_env(args.env, 1), sail.make_env(args.env, 101)
+obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+buffer = sail.ReplayBuffer(obs_dim, act_dim, args.buffer_size)
+for t in buffer.tensors():
+    t.normal_()
+buffer.size = args.buffer_size
+teacher = sail.TeacherBuffer(args.teacher_capacity)
+teacher.add_episode(0.0, *(t[:10_000] for t in (buffer.obs, buffer.actions, buffer.next_obs, buffer.terminated)))
+agent = sail.TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high)
+disc = sail.Discriminator(obs_dim, act_dim, args.disc_hidden)
+disc_optimizer = sail.make_adam(disc.parameters(), args.disc_lr)
+sail.train_discriminator(disc, disc_optimizer, teacher, buffer, args)
+for _ in range(100):
+    sail.td3_update(agent, disc, teacher, buffer, 0.5, args)
+run_dir = sail.make_run_dir(args)
+state = {{"global_step": 10**6, "rows": [], "train_time": 0.0}}
+sail.save_checkpoint(run_dir, state, agent, disc, disc_optimizer, buffer, teacher, env, eval_env,
+                     np.random.default_rng(0), env.reset()[0])
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2)
+"""
+
+
+def peak_memory_gb(args):
+    """Part 4 in a fresh process, so that parts 1-3 do not count."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    out = subprocess.run([sys.executable, "-c", MEMORY_SCRIPT.format(threads=args.threads)], cwd=here,
+                         capture_output=True, text=True)
+    if out.returncode != 0:
+        sys.exit(f"bench.py: error: the memory measurement failed: {out.stderr.strip().splitlines()[-1]}")
+    return float(out.stdout.split()[-1])
+
+
+def main():
+    args = parse_args()
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    np.random.seed(0)
+    env = make_env(args.env, seed=0)
+    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    print(f"bench.py: {args.env} (obs {obs_dim} incl. time feature, act {act_dim}), hidden {args.hidden}-{args.hidden}, "
+          f"batch {args.batch_size}, {args.threads} thread(s), torch {torch.__version__}, {time.strftime('%Y-%m-%d')}")
+
+    mkl, onednn = matmul_gflops()
+    flops = update_flops(obs_dim, act_dim, args.hidden, args.batch_size)
+    plain_flops = update_flops(obs_dim, act_dim, args.hidden, args.batch_size, discriminator=False)
+    limit = onednn * 1e9 / flops
+    print(f"1. 256x256x256 matmul: torch.mm (MKL) {mkl:.0f} GFLOP/s, oneDNN {onednn:.0f} GFLOP/s; "
+          f"one SAIL update is {flops / 1e9:.3f} GFLOP -> limit {limit:.0f} updates/s "
+          f"({mkl * 1e9 / flops:.0f} at torch.mm's rate)")
+
+    plain, fast = updates_on_random_data(args, obs_dim, act_dim)
+    print(f"2. updates/s on random data: plain TD3 {plain:.0f}, SAIL {fast:.0f}, ratio {fast / plain:.2f}; "
+          f"SAIL update at {fast / limit:.0%} of the compute limit (plain TD3 at {plain * plain_flops / (onednn * 1e9):.0%})")
+
+    plain_sps, sail_sps = plain_loop_env_steps(args), sail_env_steps(args)
+    print(f"3. env steps/s on {args.env} (1 update per step, after {args.warmup} random steps): "
+          f"plain TD3 loop {plain_sps:.0f}, SAIL {sail_sps:.0f}, ratio {sail_sps / plain_sps:.2f}")
+
+    if not args.skip_memory:
+        print(f"4. peak memory of a Walker2d-v5 run with a full 1M-transition self buffer, after a checkpoint: "
+              f"{peak_memory_gb(args):.2f} GB")
+
+
+if __name__ == "__main__":
+    main()
