@@ -632,3 +632,33 @@ def test_a_diverging_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_p
     assert "non-finite loss" in proc.stderr
     state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
     assert all(torch.isfinite(p).all() for p in state["agent"]["critic"].values())
+
+
+# ---------------------------------------------------------------------------------------------
+# plot.py
+# ---------------------------------------------------------------------------------------------
+
+def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_path):
+    """Two seeds of made-up CSVs: the table's numbers are computed from them as README says."""
+    runs = []
+    for seed, returns in ((1, [100, 900, 1400, 1500, 1600, 1700, 1800]), (2, [100, 200, 300, 400, 500, 600, 700])):
+        run = tmp_path / f"Hopper-v5__sail__{seed}"
+        run.mkdir()
+        config = {"env": "Hopper-v5", "algo": "sail", "seed": seed, "num_demos": 1, "demos": None}
+        (run / "config.json").write_text(json.dumps(config))
+        rows = [{k: "nan" for k in CSV_COLUMNS} | {"global_step": 10_000 * (i + 1), "eval_return": r,
+                                                    "promotions": int(seed == 1 and i >= 2)}
+                for i, r in enumerate(returns)]
+        with open(run / "progress.csv", "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
+            writer.writeheader()
+            writer.writerows(rows)
+        runs.append(str(run))
+    proc = run_script("plot.py", *runs, "--output-dir", str(tmp_path / "out"))
+    assert proc.returncode == 0, proc.stderr
+    table = (tmp_path / "out" / "results.md").read_text()
+    teacher = float(np.load(os.path.join(HERE, "demos", "Hopper-v5.npz"))["episode_returns"][0])
+    assert f"(teacher {teacher:.0f})" in table
+    # final = mean of the last 5 evaluations: 1600 and 500, so 1050 +- 550 over the seeds
+    assert "| SAIL | 2 | 70k, 70k | 1050 +- 550 | 1600, 500 |" in table
+    assert "| 30k, never | 30k, never |" in table  # first return >= teacher (1317); first promotion

@@ -1,0 +1,153 @@
+"""Learning curves and a results table from run folders (each with config.json and progress.csv).
+
+    python plot.py                                   # every run under results/runs/
+    python plot.py runs/Hopper-v5__sail__1__* --output-dir /tmp/plots
+
+For each env: evaluation return against env steps, the mean over seeds of each method as a
+line and the range over seeds as a band, the teacher's return as a dashed line; BC (no env
+steps) as a dotted line at its final return. Writes <env>.png (needs matplotlib: `pip install
+matplotlib`; without it only the table is written) and results.md with, per env and method:
+seeds, env steps, final return (mean of the last 5 evaluations; mean +- std over seeds), the
+env steps at which the evaluation return first reached the teacher's, and the env steps of the
+first promotion into the teacher buffer.
+"""
+
+import csv
+import glob
+import json
+import os
+import sys
+from collections import defaultdict
+
+import numpy as np
+
+from envs import ArgumentParser
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def parse_args():
+    p = ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="*", help="run folders (default: results/runs/*)")
+    p.add_argument("--output-dir", default=os.path.join(HERE, "results"), help="where the PNGs and results.md go")
+    p.add_argument("--last", type=int, default=5, help="evaluations averaged into the final return")
+    args = p.parse_args()
+    args.runs = args.runs or sorted(glob.glob(os.path.join(HERE, "results", "runs", "*")))
+    if not args.runs:
+        p.error("no run folders given and none under results/runs/")
+    for run in args.runs:
+        if not (os.path.isfile(os.path.join(run, "config.json")) and os.path.isfile(os.path.join(run, "progress.csv"))):
+            p.error(f"{run} is not a run folder (no config.json and progress.csv)")
+    if args.last <= 0:
+        p.error("--last must be positive")
+    return args
+
+
+def method_name(config):
+    """The paper's name of what a run trained: its --algo, plus the ablation flags it set."""
+    flags = [name for flag, name in (("no_adaptation", "no adaptation"), ("fixed_alpha", "fixed alpha"),
+                                     ("no_lfd", "no LfD"), ("on_policy_disc", "on-policy D"))
+             if config.get(flag) and not (config["algo"] in ("dac", "td3") and flag in ("no_adaptation", "no_lfd"))]
+    name = {"sail": "SAIL", "dac": "DAC", "td3": "TD3 (sparse)", "bc": "BC"}[config["algo"]]
+    return f"{name} ({', '.join(flags)})" if flags else name
+
+
+def teacher_return(config):
+    """Mean return of the teacher episodes the run used (the first --num-demos of its file)."""
+    path = config.get("demos") or os.path.join(HERE, "demos", f"{config['env']}.npz")
+    with np.load(path, allow_pickle=False) as demos:
+        return float(np.mean(demos["episode_returns"][:config["num_demos"]]))
+
+
+def load_run(run_dir):
+    with open(os.path.join(run_dir, "config.json")) as f:
+        config = json.load(f)
+    with open(os.path.join(run_dir, "progress.csv")) as f:
+        rows = [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+    return config, rows
+
+
+def summarise(runs, teacher, last):
+    """One table row for the runs (seeds) of one method."""
+    finals = [np.mean([r["eval_return"] for r in rows[-last:]]) for _, rows in runs]
+    reached, promoted = [], []
+    for _, rows in runs:
+        reached.append(next((r["global_step"] for r in rows if r["eval_return"] >= teacher), None))
+        promoted.append(next((r["global_step"] for r in rows if r["promotions"] > 0), None))
+    steps = [rows[-1]["global_step"] for _, rows in runs]
+
+    def when(values):
+        return ", ".join("never" if v is None else f"{v / 1000:.0f}k" for v in values)
+
+    return {"seeds": len(runs), "env steps": when(steps), "final": f"{np.mean(finals):.0f} +- {np.std(finals):.0f}",
+            "per seed": ", ".join(f"{v:.0f}" for v in finals), "vs teacher": f"{np.mean(finals) / teacher:.2f}x",
+            "reached teacher": when(reached), "first promotion": when(promoted)}
+
+
+def plot_env(env_id, methods, teacher, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for i, (method, runs) in enumerate(sorted(methods.items())):
+        color = f"C{i}"
+        if method == "BC":
+            final = np.mean([rows[-1]["eval_return"] for _, rows in runs])
+            ax.axhline(final, color=color, linestyle=":", label=f"BC ({len(runs)} seeds, final)")
+            continue
+        length = min(len(rows) for _, rows in runs)  # the steps every seed has reached
+        steps = np.array([r["global_step"] for r in runs[0][1][:length]])
+        returns = np.array([[r["eval_return"] for r in rows[:length]] for _, rows in runs])
+        ax.plot(steps, returns.mean(0), color=color, label=f"{method} ({len(runs)} seeds)")
+        ax.fill_between(steps, returns.min(0), returns.max(0), color=color, alpha=0.2)
+    ax.axhline(teacher, color="k", linestyle="--", label=f"teacher ({teacher:.0f})")
+    ax.set(title=f"{env_id}, sparse episodic reward, 1 teacher episode", xlabel="env steps",
+           ylabel="evaluation return (dense, deterministic policy)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    tmp = path + ".tmp.png"
+    fig.savefig(tmp, dpi=100)
+    os.replace(tmp, path)
+    plt.close(fig)
+
+
+def main():
+    args = parse_args()
+    by_env = defaultdict(lambda: defaultdict(list))
+    teachers = {}
+    for run in args.runs:
+        config, rows = load_run(run)
+        if not rows:
+            continue
+        by_env[config["env"]][method_name(config)].append((run, rows))
+        if config["algo"] != "td3":
+            teachers[config["env"]] = teacher_return(config)
+    os.makedirs(args.output_dir, exist_ok=True)
+
+    columns = ["method", "seeds", "env steps", "final", "per seed", "vs teacher", "reached teacher", "first promotion"]
+    lines = []
+    for env_id, methods in sorted(by_env.items()):
+        teacher = teachers.get(env_id, float("nan"))
+        lines += [f"### {env_id} (teacher {teacher:.0f})", "", "| " + " | ".join(columns) + " |",
+                  "|" + "---|" * len(columns)]
+        for method, runs in sorted(methods.items()):
+            row = summarise(runs, teacher, args.last) | {"method": method}
+            if method == "BC":
+                row |= {"env steps": "0", "reached teacher": "", "first promotion": ""}
+            lines.append("| " + " | ".join(str(row[c]) for c in columns) + " |")
+        lines.append("")
+        try:
+            plot_env(env_id, methods, teacher, os.path.join(args.output_dir, f"{env_id}.png"))
+        except ImportError:
+            print("plot.py: matplotlib is not installed (pip install matplotlib): writing the table only",
+                  file=sys.stderr)
+    path = os.path.join(args.output_dir, "results.md")
+    with open(path + ".tmp", "w") as f:
+        f.write("\n".join(lines))
+    os.replace(path + ".tmp", path)
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
