@@ -138,6 +138,8 @@ def check_args(p, args):
         p.error(f"--alpha must be in [0, 1], got {args.alpha}")
     if not 0.0 < args.gamma <= 1.0:
         p.error(f"--gamma must be in (0, 1], got {args.gamma}")
+    if args.reward == "env" and args.algo != "bc" and not (args.no_lfd and args.no_adaptation):
+        p.error("--reward env learns without demos: it needs --no-lfd and --no-adaptation (or --algo td3)")
     if args.buffer_size < 1001:
         p.error("--buffer-size must hold at least one whole episode (1001 transitions)")
     if args.device == "cuda" and not torch.cuda.is_available():
@@ -297,6 +299,9 @@ def main(argv=None):
         return train(args)
     except ConfigError as e:
         sys.exit(f"sail.py: error: {e}")
+    except KeyboardInterrupt:  # during setup or BC; the training loop handles Ctrl-C itself
+        print("sail.py: interrupted", file=sys.stderr)
+        return 130
 
 
 def train(args):
@@ -311,7 +316,7 @@ def train(args):
     env = make_env(args.env, args.seed, **env_options)
     eval_env = make_env(args.env, args.seed + 100, **env_options)
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
-    raw_obs_dim = obs_dim - args.time_feature - args.absorbing
+    raw_obs_dim = obs_dim - int(args.time_feature) - int(args.absorbing)  # the demo files' observations
     low, high = env.action_space.low, env.action_space.high
 
     # R_E: the teacher's episodes, with the same features the env wrappers add online
@@ -353,7 +358,7 @@ def train(args):
     def on_sigint(signum, frame):
         nonlocal interrupted
         interrupted = True
-    signal.signal(signal.SIGINT, on_sigint)
+    previous_handler = signal.signal(signal.SIGINT, on_sigint)
 
     bar = tqdm(total=args.total_timesteps, initial=s["global_step"], desc=f"{args.algo} {args.env}",
                unit="step", dynamic_ncols=True, mininterval=1.0)
@@ -367,6 +372,8 @@ def train(args):
             action = env.action_space.sample()
         else:
             action = agent.explore(obs, args.exploration_noise, rng)
+        if args.absorbing and obs[-1] == 1.0:  # the absorbing state: a zero action, as in the demos
+            action = np.zeros(act_dim, np.float32)
         next_obs, reward, terminated, truncated, info = env.step(action)
         self_buffer.add(obs, action, reward, next_obs, terminated)
         obs = next_obs
@@ -426,6 +433,7 @@ def train(args):
                             rng, obs)
         bar.update(1)
     bar.close()
+    signal.signal(signal.SIGINT, previous_handler)
 
     save_checkpoint(run_dir, s, agent, disc, disc_optimizer, self_buffer, teacher_buffer, env, eval_env, rng, obs)
     if args.save_model:
@@ -484,7 +492,8 @@ def save_checkpoint(run_dir, s, agent, disc, disc_optimizer, self_buffer, teache
              "disc_optimizer": disc_optimizer.state_dict(), "self_buffer": self_buffer.state_dict(),
              "teacher_buffer": teacher_buffer.state_dict(), "env": get_env_state(env),
              "eval_env": get_env_state(eval_env), "obs": obs, "numpy_rng": rng.bit_generator.state,
-             "torch_rng": torch.get_rng_state()}
+             "torch_rng": torch.get_rng_state(),
+             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None}
     atomic_write(os.path.join(run_dir, "checkpoint.pt"), lambda f: torch.save(state, f))
 
 
@@ -503,6 +512,8 @@ def load_checkpoint(run_dir, s, agent, disc, disc_optimizer, self_buffer, teache
     set_env_state(eval_env, state["eval_env"])
     rng.bit_generator.state = state["numpy_rng"]
     torch.set_rng_state(state["torch_rng"])
+    if state.get("cuda_rng") and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda_rng"])
     return state["obs"]
 
 

@@ -507,6 +507,10 @@ def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos
         assert all(r["disc_loss"] == "nan" for r in rows)
     else:
         assert 0.0 < float(rows[-1]["disc_teacher"]) < 1.0
+    if name == "dac":  # the agent acts with zero in the absorbing state, as the demos do
+        buffer = torch.load(run_dir / "checkpoint.pt", weights_only=False)["self_buffer"]["data"]
+        absorbing = buffer[0][:, -1] == 1.0
+        assert absorbing.sum() > 0 and (buffer[1][absorbing] == 0).all()
 
 
 def test_promotion_switches_alpha_inside_the_loop(tmp_path, poor_hopper_demos):
@@ -554,6 +558,7 @@ def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos):
     assert_one_line_error(run_script("sail.py", "--env", "Hopper-v5", "--demos", str(tmp_path / "none.npz"), *out))
     assert_one_line_error(run_script("sail.py", "--total-timesteps", "-5", *out))
     assert_one_line_error(run_script("sail.py", "--alpha", "1.5", *out))
+    assert_one_line_error(run_script("sail.py", "--reward", "env", *out))  # env reward with teacher batches
     assert_one_line_error(run_script("sail.py", "--resume", str(tmp_path / "nothing")))
     assert not os.path.exists(tmp_path / "runs")  # nothing was started
     blocker = tmp_path / "a-file"
