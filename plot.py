@@ -31,6 +31,8 @@ def parse_args():
     p.add_argument("runs", nargs="*", help="run folders (default: results/runs/*)")
     p.add_argument("--output-dir", default=os.path.join(HERE, "results"), help="where the PNGs and results.md go")
     p.add_argument("--last", type=int, default=5, help="evaluations averaged into the final return")
+    p.add_argument("--min-steps", type=int, default=0,
+                   help="leave out runs (not BC) with fewer env steps, e.g. those still running")
     args = p.parse_args()
     args.runs = args.runs or sorted(glob.glob(os.path.join(HERE, "results", "runs", "*")))
     if not args.runs:
@@ -94,13 +96,15 @@ def plot_env(env_id, methods, teacher, path):
         color = f"C{i}"
         if method == "BC":
             final = np.mean([rows[-1]["eval_return"] for _, rows in runs])
-            ax.axhline(final, color=color, linestyle=":", label=f"BC ({len(runs)} seeds, final)")
+            ax.axhline(final, color=color, linestyle=":", label=f"BC ({len(runs)} seed{'s' * (len(runs) > 1)}, final)")
             continue
-        length = min(len(rows) for _, rows in runs)  # the steps every seed has reached
-        steps = np.array([r["global_step"] for r in runs[0][1][:length]])
-        returns = np.array([[r["eval_return"] for r in rows[:length]] for _, rows in runs])
-        ax.plot(steps, returns.mean(0), color=color, label=f"{method} ({len(runs)} seeds)")
-        ax.fill_between(steps, returns.min(0), returns.max(0), color=color, alpha=0.2)
+        steps = sorted({r["global_step"] for _, rows in runs for r in rows})
+        returns = np.full((len(runs), len(steps)), np.nan)  # NaN where a seed has not got yet
+        for i, (_, rows) in enumerate(runs):
+            for r in rows:
+                returns[i, steps.index(r["global_step"])] = r["eval_return"]
+        ax.plot(steps, np.nanmean(returns, 0), color=color, label=f"{method} ({len(runs)} seed{'s' * (len(runs) > 1)})")
+        ax.fill_between(steps, np.nanmin(returns, 0), np.nanmax(returns, 0), color=color, alpha=0.2)
     ax.axhline(teacher, color="k", linestyle="--", label=f"teacher ({teacher:.0f})")
     ax.set(title=f"{env_id}, sparse episodic reward, 1 teacher episode", xlabel="env steps",
            ylabel="evaluation return (dense, deterministic policy)")
@@ -116,9 +120,12 @@ def main():
     args = parse_args()
     by_env = defaultdict(lambda: defaultdict(list))
     teachers = {}
+    left_out = []
     for run in args.runs:
         config, rows = load_run(run)
-        if not rows:
+        if not rows or (config["algo"] != "bc" and rows[-1]["global_step"] < args.min_steps):
+            left_out.append(f"{os.path.basename(os.path.normpath(run))} ({rows[-1]['global_step'] / 1000:.0f}k steps)"
+                            if rows else os.path.basename(os.path.normpath(run)))
             continue
         by_env[config["env"]][method_name(config)].append((run, rows))
         if config["algo"] != "td3":
@@ -142,6 +149,8 @@ def main():
         except ImportError:
             print("plot.py: matplotlib is not installed (pip install matplotlib): writing the table only",
                   file=sys.stderr)
+    if left_out:
+        lines.append(f"Left out (fewer than {args.min_steps} env steps): {', '.join(left_out)}.")
     path = os.path.join(args.output_dir, "results.md")
     with open(path + ".tmp", "w") as f:
         f.write("\n".join(lines))

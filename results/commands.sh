@@ -2,8 +2,9 @@
 # The runs behind results/ (issue 5), two at a time with one thread each; rerun this script to
 # continue: a run with a checkpoint is resumed (--resume), a finished one is skipped.
 #   bash results/commands.sh [RUNS_DIR]     (default: runs/evidence)
-# After (or during) the runs: copy each run's config.json and progress.csv to results/runs/
-# and run `python plot.py`.
+# After (or during) the runs, copy their CSVs and flags into results/ and draw the figures:
+#   for d in runs/evidence/*/; do n=results/runs/$(basename "$d"); mkdir -p "$n";
+#     cp "$d/config.json" "$d/progress.csv" "$n/"; done; python plot.py
 set -u
 cd "$(dirname "$0")/.."
 RUNS=${1:-runs/evidence}
