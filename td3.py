@@ -35,6 +35,8 @@ def linear(x, weight, bias=None, activation=None):
             and min(x.shape[0], *weight.shape) >= 16):
         if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (x, weight, bias)):
             return OneDNNLinear.apply(x, weight, bias, activation)
+        # oneDNN's linear op: input, weight, bias, fused activation, the activation's scalar
+        # arguments (none), its algorithm (default)
         return torch.ops.mkldnn._linear_pointwise(x, weight, bias, activation or "none", [], "")
     y = F.linear(x, weight, bias)
     return ACTIVATIONS[activation](y) if activation else y
