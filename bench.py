@@ -1,6 +1,6 @@
 """Speed of SAIL's training against a plain CleanRL-style TD3 loop, measured side by side.
 
-    python bench.py                      # Walker2d-v5 sizes, 2 threads, about 2 minutes
+    python bench.py                      # Walker2d-v5 sizes, 2 threads, about a minute
     python bench.py --threads 1
 
 Four measurements, each in this one process, so that both loops see the same machine state:
