@@ -7,9 +7,9 @@ For each env: evaluation return against env steps, the mean over seeds of each m
 line and the range over seeds as a band, the teacher's return as a dashed line; BC (no env
 steps) as a dotted line at its final return. Writes <env>.png (needs matplotlib: `pip install
 matplotlib`; without it only the table is written) and results.md with, per env and method:
-seeds, env steps, final return (mean of the last 5 evaluations; mean +- std over seeds), the
-env steps at which the evaluation return first reached the teacher's, and the env steps of the
-first promotion into the teacher buffer.
+seeds, env steps, final return (mean of the last 5 evaluations, for BC its last one; mean +- std
+over seeds), the env steps at which the evaluation return first reached the teacher's, and the
+env steps of the first promotion into the teacher buffer.
 """
 
 import csv
@@ -139,7 +139,7 @@ def main():
         lines += [f"### {env_id} (teacher {teacher:.0f})", "", "| " + " | ".join(columns) + " |",
                   "|" + "---|" * len(columns)]
         for method, runs in sorted(methods.items()):
-            row = summarise(runs, teacher, args.last) | {"method": method}
+            row = summarise(runs, teacher, 1 if method == "BC" else args.last) | {"method": method}
             if method == "BC":
                 row |= {"env steps": "0", "reached teacher": "", "first promotion": ""}
             lines.append("| " + " | ".join(str(row[c]) for c in columns) + " |")
