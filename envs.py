@@ -20,6 +20,11 @@ import gymnasium as gym
 import numpy as np
 
 
+def first_line(error):
+    """An exception as one line of text, for one-line error messages."""
+    return (str(error).strip().splitlines() or [type(error).__name__])[0]
+
+
 class ConfigError(Exception):
     """Bad user input (env id, demo file, flag value): scripts print it as one line and exit."""
 

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from buffers import ReplayBuffer, atomic_write, save_demos
-from envs import ArgumentParser, ConfigError, get_env_state, make_env, rollout, set_env_state
+from envs import ArgumentParser, ConfigError, first_line, get_env_state, make_env, rollout, set_env_state
 from td3 import TD3
 
 # teacher return bands (low, high) at the paper's teacher quality
@@ -93,7 +93,10 @@ def main(argv=None):
     obs, _ = env.reset()
     first_step = 1
     if args.checkpoint and os.path.isfile(args.checkpoint):
-        state = torch.load(args.checkpoint, weights_only=False)
+        try:
+            state = torch.load(args.checkpoint, weights_only=False)
+        except Exception as e:  # checkpoints are written atomically: this is another program's file
+            sys.exit(f"make_demos.py: error: cannot read the checkpoint {args.checkpoint}: {first_line(e)}")
         agent.load_state_dict(state["agent"])
         buffer.load_state_dict(state["buffer"])
         set_env_state(env, state["env"])

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from buffers import ReplayBuffer, TeacherBuffer, atomic_write, load_demos, mixed_batch
-from envs import ArgumentParser, ConfigError, add_features, get_env_state, make_env, rollout, set_env_state
+from envs import ArgumentParser, ConfigError, add_features, first_line, get_env_state, make_env, rollout, set_env_state
 from td3 import MLP, TD3, make_adam
 
 # Presets of --algo: each sets defaults that explicit flags still override.
@@ -501,7 +501,7 @@ def load_checkpoint(run_dir, s, agent, disc, disc_optimizer, self_buffer, teache
     try:
         state = torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False)
     except Exception as e:  # a checkpoint is written atomically; this is another program's file
-        raise ConfigError(f"cannot read {run_dir}/checkpoint.pt: {e}") from None
+        raise ConfigError(f"cannot read {run_dir}/checkpoint.pt: {first_line(e)}") from None
     s.update(state["loop"])
     agent.load_state_dict(state["agent"])
     disc.load_state_dict(state["disc"])

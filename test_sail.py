@@ -408,6 +408,14 @@ def test_make_demos_bad_input_is_one_line():
     assert_one_line_error(run_script("make_demos.py", "--env", "Pendulum-v1"))  # no default band
 
 
+def test_make_demos_unreadable_checkpoint_is_one_line(tmp_path):
+    broken = tmp_path / "teacher.pt"
+    broken.write_text("not a checkpoint")
+    assert_one_line_error(run_script("make_demos.py", "--env", "Hopper-v5", "--checkpoint", str(broken),
+                                     "--output", str(tmp_path / "out.npz")))
+    assert not (tmp_path / "out.npz").exists()
+
+
 # ---------------------------------------------------------------------------------------------
 # sail.py
 # ---------------------------------------------------------------------------------------------
