@@ -69,6 +69,8 @@ def parse_args(argv=None):
     g.add_argument("--resume", metavar="RUN_DIR", help="continue the run saved in RUN_DIR "
                    "(its flags are reused; --total-timesteps, --threads and --device may be changed)")
     g.add_argument("--checkpoint-freq", type=int, default=50_000, help="env steps between checkpoints")
+    g.add_argument("--evaluate", metavar="RUN_DIR", help="only run --eval-episodes episodes of RUN_DIR's saved actor "
+                   "(model.pt, else checkpoint.pt) on an env seeded with --seed, print return and length of each")
 
     g = p.add_argument_group("TD3 learner")
     g.add_argument("--hidden", type=int, nargs="+", default=[256, 256], help="actor/critic hidden sizes")
@@ -296,7 +298,7 @@ def resume_args(args):
 def main(argv=None):
     args = parse_args(argv)
     try:
-        return train(args)
+        return evaluate_saved(args) if args.evaluate else train(args)
     except ConfigError as e:
         sys.exit(f"sail.py: error: {e}")
     except KeyboardInterrupt:  # during setup or BC; the training loop handles Ctrl-C itself
@@ -515,6 +517,34 @@ def load_checkpoint(run_dir, s, agent, disc, disc_optimizer, self_buffer, teache
     if state.get("cuda_rng") and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda_rng"])
     return state["obs"]
+
+
+def evaluate_saved(args):
+    """--evaluate RUN_DIR: the saved deterministic actor on fresh episodes of the dense return."""
+    run_dir, paths = args.evaluate, [os.path.join(args.evaluate, name) for name in ("model.pt", "checkpoint.pt")]
+    path = next((p for p in paths if os.path.isfile(p)), None)
+    if path is None or not os.path.isfile(os.path.join(run_dir, "config.json")):
+        raise ConfigError(f"--evaluate {run_dir}: no config.json with model.pt or checkpoint.pt there")
+    try:
+        with open(os.path.join(run_dir, "config.json")) as f:
+            config = json.load(f)
+        saved = torch.load(path, weights_only=False)
+        actor_state = saved["actor"] if path == paths[0] else saved["agent"]["actor"]
+    except Exception as e:
+        raise ConfigError(f"cannot read {path}: {first_line(e)}") from None
+    torch.set_num_threads(args.threads)
+    env = make_env(config["env"], args.seed, time_feature=config["time_feature"], absorbing=config["absorbing"])
+    agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low,
+                env.action_space.high, hidden=config["hidden"])
+    agent.actor.load_state_dict(actor_state)
+    returns = []
+    for i in range(args.eval_episodes):
+        episode = rollout(env, agent.act)
+        returns.append(episode["episodic_return"])
+        print(f"episode {i + 1}: return {returns[-1]:.1f}, length {len(episode['actions'])}")
+    print(f"{config['env']}, {path}: mean return {np.mean(returns):.1f} +- {np.std(returns):.1f} "
+          f"over {len(returns)} episodes (env seed {args.seed})")
+    return 0
 
 
 def save_model(run_dir, agent, disc, args):

@@ -557,6 +557,24 @@ def test_resume_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos):
             torch.testing.assert_close(value, model_b[key][name], rtol=0, atol=0)
 
 
+def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, poor_hopper_demos):
+    proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "600",
+                      "--learning-starts", "300", "--eval-freq", "300", "--disc-freq", "100", "--save-model",
+                      "--output-dir", str(tmp_path), "--run-name", "run", *TINY)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    from_model = run_script("sail.py", "--evaluate", str(tmp_path / "run"), "--eval-episodes", "3", "--seed", "7")
+    os.remove(tmp_path / "run" / "model.pt")  # the final checkpoint holds the same actor
+    from_checkpoint = run_script("sail.py", "--evaluate", str(tmp_path / "run"), "--eval-episodes", "3", "--seed", "7")
+    for proc in (from_model, from_checkpoint):
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    episodes = from_model.stdout.splitlines()[:3]
+    assert [line.split(":")[0] for line in episodes] == ["episode 1", "episode 2", "episode 3"]
+    assert from_checkpoint.stdout.splitlines()[:3] == episodes
+    assert "checkpoint.pt: mean return" in from_checkpoint.stdout.splitlines()[3]
+    os.remove(tmp_path / "run" / "checkpoint.pt")
+    assert_one_line_error(run_script("sail.py", "--evaluate", str(tmp_path / "run")))
+
+
 def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos):
     out = ["--output-dir", str(tmp_path / "runs")]
     assert_one_line_error(run_script("sail.py", "--env", "NoSuchEnv-v5", *out))
