@@ -528,7 +528,7 @@ def evaluate_saved(args):
     try:
         with open(os.path.join(run_dir, "config.json")) as f:
             config = json.load(f)
-        saved = torch.load(path, weights_only=False)
+        saved = torch.load(path, map_location="cpu", weights_only=False)  # also a run made with --device cuda
         actor_state = saved["actor"] if path == paths[0] else saved["agent"]["actor"]
     except Exception as e:
         raise ConfigError(f"cannot read {path}: {first_line(e)}") from None
