@@ -536,7 +536,10 @@ def evaluate_saved(args):
     env = make_env(config["env"], args.seed, time_feature=config["time_feature"], absorbing=config["absorbing"])
     agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low,
                 env.action_space.high, hidden=config["hidden"])
-    agent.actor.load_state_dict(actor_state)
+    try:
+        agent.actor.load_state_dict(actor_state)
+    except RuntimeError as e:  # config.json and the saved networks disagree (sizes, env)
+        raise ConfigError(f"{path} does not fit {run_dir}/config.json: {first_line(e)}") from None
     returns = []
     for i in range(args.eval_episodes):
         episode = rollout(env, agent.act)
