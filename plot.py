@@ -5,8 +5,10 @@
 
 For each env: evaluation return against env steps, the mean over seeds of each method as a
 line and the range over seeds as a band, the teacher's return as a dashed line; BC (no env
-steps) as a dotted line at its final return. Writes <env>.png (needs matplotlib: `pip install
-matplotlib`; without it only the table is written) and results.md with, per env and method:
+steps) as a dotted line at its final return. Writes <env>.png with SAIL and the baselines,
+<env>-ablations.png with SAIL and its ablations (fixed alpha, no LfD, on-policy D) where there
+are any (needs matplotlib: `pip install matplotlib`; without it only the table is written) and
+results.md with, per env and method:
 seeds, env steps, final return (mean of the last 5 evaluations, for BC its last one; mean +- std
 over seeds), the env steps at which the evaluation return first reached the teacher's, and the
 env steps of the first promotion into the teacher buffer.
@@ -86,14 +88,17 @@ def summarise(runs, teacher, last):
             "reached teacher": when(reached), "first promotion": when(promoted)}
 
 
-def plot_env(env_id, methods, teacher, path):
+ABLATIONS = ("fixed alpha", "no LfD", "on-policy D")  # claims 4 and 5: drawn apart from the baselines
+
+
+def plot_env(env_id, methods, teacher, path, colors):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    for i, (method, runs) in enumerate(sorted(methods.items())):
-        color = f"C{i}"
+    for method, runs in sorted(methods.items()):
+        color = colors[method]
         if method == "BC":
             final = np.mean([rows[-1]["eval_return"] for _, rows in runs])
             ax.axhline(final, color=color, linestyle=":", label=f"BC ({len(runs)} seed{'s' * (len(runs) > 1)}, final)")
@@ -144,8 +149,13 @@ def main():
                 row |= {"env steps": "0", "reached teacher": "", "first promotion": ""}
             lines.append("| " + " | ".join(str(row[c]) for c in columns) + " |")
         lines.append("")
+        colors = {method: f"C{i}" for i, method in enumerate(sorted(methods))}  # the same in both figures
+        ablations = {m: runs for m, runs in methods.items() if m == "SAIL" or any(a in m for a in ABLATIONS)}
+        baselines = {m: runs for m, runs in methods.items() if not any(a in m for a in ABLATIONS)}
         try:
-            plot_env(env_id, methods, teacher, os.path.join(args.output_dir, f"{env_id}.png"))
+            plot_env(env_id, baselines, teacher, os.path.join(args.output_dir, f"{env_id}.png"), colors)
+            if len(ablations) > 1:
+                plot_env(env_id, ablations, teacher, os.path.join(args.output_dir, f"{env_id}-ablations.png"), colors)
         except ImportError:
             print("plot.py: matplotlib is not installed (pip install matplotlib): writing the table only",
                   file=sys.stderr)

@@ -56,13 +56,13 @@ Hopper-v5__td3__1 --env Hopper-v5 --algo td3 --seed 1
 Walker2d-v5__td3__1 --env Walker2d-v5 --algo td3 --seed 1
 HalfCheetah-v5__sail__2 --env HalfCheetah-v5 --algo sail --seed 2
 Swimmer-v5__sail__2 --env Swimmer-v5 --algo sail --seed 2
+Hopper-v5__no-lfd__1 --env Hopper-v5 --algo sail --no-lfd --seed 1
+Hopper-v5__on-policy-disc__1 --env Hopper-v5 --algo sail --on-policy-disc --seed 1
 Hopper-v5__no-adaptation__2 --env Hopper-v5 --algo sail --no-adaptation --seed 2
 Walker2d-v5__no-adaptation__2 --env Walker2d-v5 --algo sail --no-adaptation --seed 2
+Hopper-v5__fixed-alpha__1 --env Hopper-v5 --algo sail --fixed-alpha --seed 1
 Hopper-v5__dac__2 --env Hopper-v5 --algo dac --seed 2
 Walker2d-v5__dac__2 --env Walker2d-v5 --algo dac --seed 2
 HalfCheetah-v5__dac__1 --env HalfCheetah-v5 --algo dac --seed 1
 Swimmer-v5__dac__1 --env Swimmer-v5 --algo dac --seed 1
-Hopper-v5__fixed-alpha__1 --env Hopper-v5 --algo sail --fixed-alpha --seed 1
-Hopper-v5__no-lfd__1 --env Hopper-v5 --algo sail --no-lfd --seed 1
-Hopper-v5__on-policy-disc__1 --env Hopper-v5 --algo sail --on-policy-disc --seed 1
 LIST
