@@ -238,7 +238,11 @@ def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args):
         rewards = env_rewards.to(agent.device)
     else:
         rewards = shaped_reward(disc, obs, actions, args.reward)
-    return agent.update(obs, actions, rewards, next_obs, terminated) | {"reward_mean": rewards.mean()}
+    # DAC: the absorbing state's only action is zero (as the agent and the demos act there, and as
+    # in DAC's code). With the actor's action instead, the critic is asked for Q at actions it never
+    # saw in that state, the actor pushes them up, and the self-loop multiplies that by 1/(1 - gamma).
+    next_action_mask = 1.0 - next_obs[:, -1:] if args.absorbing else None
+    return agent.update(obs, actions, rewards, next_obs, terminated, next_action_mask) | {"reward_mean": rewards.mean()}
 
 
 # ---------------------------------------------------------------------------------------------

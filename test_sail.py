@@ -393,6 +393,31 @@ def test_td3_update_equals_the_straightforward_formulas(monkeypatch):
             torch.testing.assert_close(new, 0.995 * old + 0.005 * p)
 
 
+def test_td3_target_takes_the_zero_action_where_the_next_action_mask_is_zero():
+    """DAC's absorbing state admits only the zero action: there the target is r + gamma Q'(s', 0),
+    whatever the target actor and the smoothing noise would give; elsewhere it is unchanged."""
+    torch.manual_seed(0)
+    agent = TD3(obs_dim=5, act_dim=2, action_low=-torch.ones(2), action_high=torch.ones(2), hidden=(64, 64))
+    obs, next_obs, actions = torch.randn(128, 5), torch.randn(128, 5), torch.rand(128, 2) * 2 - 1
+    rewards, terminated = torch.randn(128), torch.zeros(128)
+    mask = (torch.arange(128) % 2).float()[:, None]  # every other next state is "absorbing"
+    critic, actor_target, critic_target = (copy.deepcopy(m) for m in (agent.critic, agent.actor_target,
+                                                                      agent.critic_target))
+    torch.manual_seed(1)
+    masked = agent.update(obs, actions, rewards, next_obs, terminated, next_action_mask=mask)["critic_loss"]
+
+    torch.manual_seed(1)
+    noise = (torch.randn_like(actions) * 0.2).clamp(-0.5, 0.5)
+    with torch.no_grad():
+        q1, q2 = critic(obs, actions)
+        losses = []
+        for next_actions in ((actor_target(next_obs) + noise).clamp(-1.0, 1.0) * m for m in (mask, 1.0)):
+            y = rewards + 0.99 * torch.min(*critic_target(next_obs, next_actions))
+            losses.append(((q1 - y) ** 2).mean() + ((q2 - y) ** 2).mean())
+    torch.testing.assert_close(masked, losses[0], rtol=1e-5, atol=1e-6)
+    assert abs(losses[0] - losses[1]) > 1e-4  # without the mask the target would differ
+
+
 def test_make_demos_smoke_run_writes_a_loadable_file(tmp_path):
     out = tmp_path / "Hopper-v5.npz"
     proc = run_script("make_demos.py", "--env", "Hopper-v5", "--total-timesteps", "1500",
