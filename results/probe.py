@@ -1,0 +1,66 @@
+"""The checkpoint probes behind README's results text (issue 5): what D and the critic say.
+
+    python results/probe.py RUN_DIR [--velocity-index 8]
+
+RUN_DIR is a run folder with config.json and checkpoint.pt (the checkpoints stay with the runs,
+outside the repo). Prints, for an --absorbing run (DAC): D's reward log D - log(1 - D) in the
+absorbing state, and the critic's min(Q1, Q2) there with the zero action and with the actor's
+action, against its mean over the last 20k states of the self buffer (with the actor's action).
+For every run: D's mean output on the recorded teacher episodes of the run's demo file with one
+observation (by default 8, the forward velocity of HalfCheetah-v5) scaled by 0.75 to 1.5.
+"""
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from buffers import load_demos  # noqa: E402
+from envs import absorbing_state, add_features  # noqa: E402
+from sail import Discriminator  # noqa: E402
+from td3 import Actor, TwinCritic  # noqa: E402
+
+p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+p.add_argument("run_dir")
+p.add_argument("--velocity-index", type=int, default=8, help="the observation scaled in the D probe")
+args = p.parse_args()
+config = json.load(open(os.path.join(args.run_dir, "config.json")))
+state = torch.load(os.path.join(args.run_dir, "checkpoint.pt"), weights_only=False, map_location="cpu")
+self_obs = state["self_buffer"]["data"][0]
+obs_dim, act_dim = self_obs.shape[1], state["self_buffer"]["data"][1].shape[1]
+disc = Discriminator(obs_dim, act_dim, config["disc_hidden"])
+disc.load_state_dict(state["disc"])
+torch.set_grad_enabled(False)
+
+if config["absorbing"]:
+    critic = TwinCritic(obs_dim, act_dim, config["hidden"])
+    critic.load_state_dict(state["agent"]["critic"])
+    actor = Actor(obs_dim, act_dim, config["hidden"], -np.ones(act_dim), np.ones(act_dim))
+    actor.load_state_dict(state["agent"]["actor"])  # its buffers hold the env's action bounds
+    absorbing = torch.as_tensor(absorbing_state(obs_dim - 1))[None]
+    zero = torch.zeros(1, act_dim)
+    recent = self_obs[-20_000:]
+    print(f"D's reward in the absorbing state: {disc(disc.inputs(absorbing, zero)).item():.2f}")
+    print(f"Q(absorbing, 0) {torch.min(*critic(absorbing, zero)).item():.1f}, "
+          f"Q(absorbing, actor) {torch.min(*critic(absorbing, actor(absorbing))).item():.1f}, "
+          f"mean Q(s, actor) over the last 20k states {torch.min(*critic(recent, actor(recent))).mean().item():.1f}")
+
+demo_path = config["demos"] or os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                            "demos", f"{config['env']}.npz")
+raw_obs_dim = obs_dim - int(config["time_feature"]) - int(config["absorbing"])
+episodes = load_demos(demo_path, config["env"], raw_obs_dim, act_dim, config["num_demos"])
+obs, actions = [], []
+for episode in episodes:
+    o, a, *_ = add_features(episode, 1000, config["time_feature"], config["absorbing"])
+    keep = o[:, -1] != 1.0 if config["absorbing"] else slice(None)  # not the absorbing state
+    obs.append(o[keep]), actions.append(a[keep])
+obs, actions = torch.as_tensor(np.concatenate(obs)), torch.as_tensor(np.concatenate(actions))
+for scale in (0.75, 1.0, 1.25, 1.5):
+    scaled = obs.clone()
+    scaled[:, args.velocity_index] *= scale
+    print(f"D on the teacher's state-actions, observation {args.velocity_index} x {scale}: "
+          f"{torch.sigmoid(disc(disc.inputs(scaled, actions))).mean().item():.2f}")
