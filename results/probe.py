@@ -28,6 +28,9 @@ p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
 p.add_argument("--velocity-index", type=int, default=8, help="the observation scaled in the D probe")
 args = p.parse_args()
+for name in ("config.json", "checkpoint.pt"):
+    if not os.path.isfile(os.path.join(args.run_dir, name)):
+        p.error(f"{args.run_dir} has no {name}: give a run folder made by sail.py")
 config = json.load(open(os.path.join(args.run_dir, "config.json")))
 state = torch.load(os.path.join(args.run_dir, "checkpoint.pt"), weights_only=False, map_location="cpu")
 self_obs = state["self_buffer"]["data"][0]
