@@ -302,12 +302,17 @@ def resume_args(args):
 def main(argv=None):
     args = parse_args(argv)
     try:
-        return evaluate_saved(args) if args.evaluate else train(args)
+        code = evaluate_saved(args) if args.evaluate else train(args)
+        sys.stdout.flush()  # here, so that a reader gone early (`| head`) is caught below, not at exit
+        return code
     except ConfigError as e:
         sys.exit(f"sail.py: error: {e}")
     except KeyboardInterrupt:  # during setup or BC; the training loop handles Ctrl-C itself
         print("sail.py: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # stop quietly, as Unix tools do; stdout to /dev/null so exit cannot fail again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
 
 
 def train(args):

@@ -596,6 +596,10 @@ def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, poor_h
     assert [line.split(":")[0] for line in episodes] == ["episode 1", "episode 2", "episode 3"]
     assert from_checkpoint.stdout.splitlines()[:3] == episodes
     assert "checkpoint.pt: mean return" in from_checkpoint.stdout.splitlines()[3]
+    reader_gone = subprocess.Popen([sys.executable, "sail.py", "--evaluate", str(tmp_path / "run")], cwd=HERE,
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    reader_gone.stdout.close()  # as `| head -1` does after its line
+    assert reader_gone.wait(timeout=120) == 1 and reader_gone.stderr.read() == ""
     config = json.load(open(tmp_path / "run" / "config.json"))
     json.dump(config | {"hidden": [64, 64]}, open(tmp_path / "run" / "config.json", "w"))  # not the saved sizes
     assert_one_line_error(run_script("sail.py", "--evaluate", str(tmp_path / "run")))
