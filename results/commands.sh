@@ -65,4 +65,10 @@ Hopper-v5__dac__2 --env Hopper-v5 --algo dac --seed 2
 Walker2d-v5__dac__2 --env Walker2d-v5 --algo dac --seed 2
 HalfCheetah-v5__dac__1 --env HalfCheetah-v5 --algo dac --seed 1
 Swimmer-v5__dac__1 --env Swimmer-v5 --algo dac --seed 1
+Hopper-v5__no-lfd__2 --env Hopper-v5 --algo sail --no-lfd --seed 2
+Hopper-v5__on-policy-disc__2 --env Hopper-v5 --algo sail --on-policy-disc --seed 2
+Hopper-v5__fixed-alpha__2 --env Hopper-v5 --algo sail --fixed-alpha --seed 2
+Hopper-v5__no-lfd__3 --env Hopper-v5 --algo sail --no-lfd --seed 3
+Hopper-v5__on-policy-disc__3 --env Hopper-v5 --algo sail --on-policy-disc --seed 3
+Hopper-v5__fixed-alpha__3 --env Hopper-v5 --algo sail --fixed-alpha --seed 3
 LIST
