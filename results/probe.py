@@ -15,6 +15,7 @@ import json
 import os
 import sys
 
+import gymnasium as gym
 import numpy as np
 import torch
 
@@ -57,8 +58,9 @@ demo_path = config["demos"] or os.path.join(os.path.dirname(os.path.dirname(os.p
 raw_obs_dim = obs_dim - int(config["time_feature"]) - int(config["absorbing"])
 episodes = load_demos(demo_path, config["env"], raw_obs_dim, act_dim, config["num_demos"])
 obs, actions = [], []
+max_steps = gym.spec(config["env"]).max_episode_steps or 1000  # the time feature's denominator, as in envs.make_env
 for episode in episodes:
-    o, a, *_ = add_features(episode, 1000, config["time_feature"], config["absorbing"])
+    o, a, *_ = add_features(episode, max_steps, config["time_feature"], config["absorbing"])
     keep = o[:, -1] != 1.0 if config["absorbing"] else slice(None)  # not the absorbing state
     obs.append(o[keep]), actions.append(a[keep])
 obs, actions = torch.as_tensor(np.concatenate(obs)), torch.as_tensor(np.concatenate(actions))
