@@ -10,8 +10,9 @@ steps) as a dotted line at its final return. Writes <env>.png with SAIL and the 
 are any (needs matplotlib: `pip install matplotlib`; without it only the table is written) and
 results.md with, per env and method:
 seeds, env steps, final return (mean of the last 5 evaluations, for BC its last one; mean +- std
-over seeds), the env steps at which the evaluation return first reached the teacher's, and the
-env steps of the first promotion into the teacher buffer.
+over seeds), the env steps at which the evaluation return first reached the teacher's, the
+env steps of the first promotion into the teacher buffer, and the mean evaluation return of the
+early phase (evaluations up to --early-steps, averaged over seeds).
 """
 
 import csv
@@ -33,6 +34,8 @@ def parse_args():
     p.add_argument("runs", nargs="*", help="run folders (default: results/runs/*)")
     p.add_argument("--output-dir", default=os.path.join(HERE, "results"), help="where the PNGs and results.md go")
     p.add_argument("--last", type=int, default=5, help="evaluations averaged into the final return")
+    p.add_argument("--early-steps", type=int, default=100_000,
+                   help="the early phase: the table's last column averages the evaluations up to here")
     p.add_argument("--min-steps", type=int, default=0,
                    help="leave out runs (not BC) with fewer env steps, e.g. those still running")
     args = p.parse_args()
@@ -42,8 +45,8 @@ def parse_args():
     for run in args.runs:
         if not (os.path.isfile(os.path.join(run, "config.json")) and os.path.isfile(os.path.join(run, "progress.csv"))):
             p.error(f"{run} is not a run folder (no config.json and progress.csv)")
-    if args.last <= 0:
-        p.error("--last must be positive")
+    if args.last <= 0 or args.early_steps <= 0:
+        p.error("--last and --early-steps must be positive")
     return args
 
 
@@ -71,9 +74,10 @@ def load_run(run_dir):
     return config, rows
 
 
-def summarise(runs, teacher, last):
+def summarise(runs, teacher, last, early_steps):
     """One table row for the runs (seeds) of one method."""
     finals = [np.mean([r["eval_return"] for r in rows[-last:]]) for _, rows in runs]
+    early = [np.mean([r["eval_return"] for r in rows if r["global_step"] <= early_steps]) for _, rows in runs]
     reached, promoted = [], []
     for _, rows in runs:
         reached.append(next((r["global_step"] for r in rows if r["eval_return"] >= teacher), None))
@@ -85,7 +89,7 @@ def summarise(runs, teacher, last):
 
     return {"seeds": len(runs), "env steps": when(steps), "final": f"{np.mean(finals):.0f} +- {np.std(finals):.0f}",
             "per seed": ", ".join(f"{v:.0f}" for v in finals), "vs teacher": f"{np.mean(finals) / teacher:.2f}x",
-            "reached teacher": when(reached), "first promotion": when(promoted)}
+            "reached teacher": when(reached), "first promotion": when(promoted), "early": f"{np.mean(early):.0f}"}
 
 
 ABLATIONS = ("fixed alpha", "no LfD", "on-policy D")  # claims 4 and 5: drawn apart from the baselines
@@ -137,16 +141,18 @@ def main():
             teachers[config["env"]] = teacher_return(config)
     os.makedirs(args.output_dir, exist_ok=True)
 
-    columns = ["method", "seeds", "env steps", "final", "per seed", "vs teacher", "reached teacher", "first promotion"]
+    columns = ["method", "seeds", "env steps", "final", "per seed", "vs teacher", "reached teacher", "first promotion",
+               "early"]
     lines = []
     for env_id, methods in sorted(by_env.items()):
         teacher = teachers.get(env_id, float("nan"))
-        lines += [f"### {env_id} (teacher {teacher:.0f})", "", "| " + " | ".join(columns) + " |",
+        header = columns[:-1] + [f"mean to {args.early_steps / 1000:.0f}k"]
+        lines += [f"### {env_id} (teacher {teacher:.0f})", "", "| " + " | ".join(header) + " |",
                   "|" + "---|" * len(columns)]
         for method, runs in sorted(methods.items()):
-            row = summarise(runs, teacher, 1 if method == "BC" else args.last) | {"method": method}
+            row = summarise(runs, teacher, 1 if method == "BC" else args.last, args.early_steps) | {"method": method}
             if method == "BC":
-                row |= {"env steps": "0", "reached teacher": "", "first promotion": ""}
+                row |= {"env steps": "0", "reached teacher": "", "first promotion": "", "early": ""}
             lines.append("| " + " | ".join(str(row[c]) for c in columns) + " |")
         lines.append("")
         colors = {method: f"C{i}" for i, method in enumerate(sorted(methods))}  # the same in both figures
