@@ -2,6 +2,7 @@
 # The runs behind results/ (issue 5), two at a time with one thread each; rerun this script to
 # continue: a run with a checkpoint is resumed (--resume), a finished one is skipped.
 #   bash results/commands.sh [RUNS_DIR]     (default: runs/evidence)
+#   JOBS=3 bash results/commands.sh RUNS_DIR   (three at a time: fewer idle cores when few runs are left)
 # After (or during) the runs, copy their CSVs and flags into results/ and draw the figures:
 #   for d in runs/evidence/*/; do n=results/runs/$(basename "$d"); mkdir -p "$n";
 #     cp "$d/config.json" "$d/progress.csv" "$n/"; done; python plot.py
@@ -9,6 +10,7 @@ set -u
 cd "$(dirname "$0")/.."
 RUNS=${1:-runs/evidence}
 STEPS=300000
+JOBS=${JOBS:-2}
 mkdir -p "$RUNS"
 
 run() {  # run NAME SAIL.PY-FLAGS...
@@ -33,7 +35,7 @@ export -f run
 export RUNS STEPS
 
 # name, then the flags: the order is the priority
-cat <<'LIST' | xargs -P 2 -L 1 bash -c 'run "$@"' _
+cat <<'LIST' | xargs -P "$JOBS" -L 1 bash -c 'run "$@"' _
 Hopper-v5__sail__1 --env Hopper-v5 --algo sail --seed 1
 Walker2d-v5__sail__1 --env Walker2d-v5 --algo sail --seed 1
 Hopper-v5__sail__2 --env Hopper-v5 --algo sail --seed 2
