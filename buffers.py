@@ -188,6 +188,11 @@ def atomic_write(path, write):
             os.remove(tmp)
 
 
+def default_demo_path(env_id):
+    """demos/<env>.npz beside this file: the shipped teacher demonstrations."""
+    return os.path.join(os.path.dirname(os.path.abspath(__file__)), "demos", f"{env_id}.npz")
+
+
 def load_demos(path, env_id, obs_dim, act_dim, num_demos=None):
     """Reads and checks a demo file; returns a list of episode dicts (the first `num_demos`).
 

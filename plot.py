@@ -24,6 +24,7 @@ from collections import defaultdict
 
 import numpy as np
 
+from buffers import default_demo_path
 from envs import ArgumentParser
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -61,7 +62,7 @@ def method_name(config):
 
 def teacher_return(config):
     """Mean return of the teacher episodes the run used (the first --num-demos of its file)."""
-    path = config.get("demos") or os.path.join(HERE, "demos", f"{config['env']}.npz")
+    path = config.get("demos") or default_demo_path(config["env"])
     with np.load(path, allow_pickle=False) as demos:
         return float(np.mean(demos["episode_returns"][:config["num_demos"]]))
 

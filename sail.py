@@ -31,7 +31,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from buffers import ReplayBuffer, TeacherBuffer, atomic_write, load_demos, mixed_batch
+from buffers import ReplayBuffer, TeacherBuffer, atomic_write, default_demo_path, load_demos, mixed_batch
 from envs import ArgumentParser, ConfigError, add_features, first_line, get_env_state, make_env, rollout, set_env_state
 from td3 import MLP, TD3, make_adam
 
@@ -334,7 +334,7 @@ def train(args):
     use_demos = args.algo == "bc" or args.reward != "env"
     teacher_buffer = TeacherBuffer(args.teacher_capacity)
     if use_demos:
-        demo_path = args.demos or os.path.join(os.path.dirname(os.path.abspath(__file__)), "demos", f"{args.env}.npz")
+        demo_path = args.demos or default_demo_path(args.env)
         for episode in load_demos(demo_path, args.env, raw_obs_dim, act_dim, args.num_demos):
             if len(episode["actions"]) > args.teacher_capacity:
                 raise ConfigError(f"--teacher-capacity {args.teacher_capacity} is smaller than a demo episode")

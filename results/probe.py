@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from buffers import load_demos  # noqa: E402
+from buffers import default_demo_path, load_demos  # noqa: E402
 from envs import absorbing_state, add_features  # noqa: E402
 from sail import Discriminator  # noqa: E402
 from td3 import Actor, TwinCritic  # noqa: E402
@@ -53,8 +53,7 @@ if config["absorbing"]:
           f"Q(absorbing, actor) {torch.min(*critic(absorbing, actor(absorbing))).item():.1f}, "
           f"mean Q(s, actor) over the last 20k states {torch.min(*critic(recent, actor(recent))).mean().item():.1f}")
 
-demo_path = config["demos"] or os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                                            "demos", f"{config['env']}.npz")
+demo_path = config["demos"] or default_demo_path(config["env"])
 raw_obs_dim = obs_dim - int(config["time_feature"]) - int(config["absorbing"])
 episodes = load_demos(demo_path, config["env"], raw_obs_dim, act_dim, config["num_demos"])
 obs, actions = [], []
