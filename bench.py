@@ -5,11 +5,12 @@
 
 Four measurements, each in this one process, so that both loops see the same machine state:
   1. the compute limit: GFLOP/s of a 256x256x256 float32 matmul, through torch.mm (MKL) and
-     through oneDNN (td3.linear), and the FLOPs of one SAIL update;
+     through oneDNN (cpu_kernels.linear), and the FLOPs of one SAIL update;
   2. updates on the same random data: the plain TD3 update against SAIL's update (TD3 step,
-     discriminator reward of the batch, discriminator training amortised over --disc-freq);
+     discriminator reward of the batch, discriminator training amortised over --disc-freq),
+     with each of sail.py's CPU kernels (--kernels torch, onednn) and the one `auto` picks;
   3. end-to-end on the real env: env steps/s after the warm-up, the plain loop against
-     sail.py itself (its progress.csv, which excludes evaluation);
+     sail.py itself with --kernels auto, its default (its progress.csv excludes evaluation);
   4. peak memory: a Walker2d run's state with a full 1M-transition self buffer, a checkpoint
      written from it.
 The plain loop is CleanRL's td3_continuous_action.py reduced to its update: two nn.Linear
@@ -20,6 +21,7 @@ copied to torch for every batch.
 import copy
 import csv
 import os
+import platform
 import resource
 import subprocess
 import sys
@@ -31,10 +33,12 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+import cpu_kernels
 import sail
 import td3
 from buffers import ReplayBuffer, TeacherBuffer
-from envs import ArgumentParser, make_env
+from envs import make_env
+from plumbing import ArgumentParser
 
 
 def parse_args():
@@ -144,7 +148,7 @@ def matmul_gflops(size=256):
     out = torch.empty(size, size)
     flops = 2 * size**3
     mkl = per_second(lambda: torch.mm(a, b, out=out), 2000) * flops / 1e9
-    onednn = per_second(lambda: td3.linear(a, b), 2000) * flops / 1e9
+    onednn = per_second(lambda: cpu_kernels.linear(a, b), 2000) * flops / 1e9
     return mkl, onednn
 
 
@@ -161,16 +165,18 @@ def update_flops(obs_dim, act_dim, hidden, batch_size, discriminator=True, polic
     return batch_size * (target + critic_step + reward + actor_step)
 
 
-def bench_args(args, env_id, output_dir, total):
+def bench_args(args, env_id, output_dir, total, kernels="auto"):
     return sail.parse_args(["--env", env_id, "--threads", str(args.threads), "--hidden", str(args.hidden),
                             str(args.hidden), "--disc-hidden", str(args.hidden), str(args.hidden),
                             "--batch-size", str(args.batch_size), "--learning-starts", str(args.warmup),
                             "--total-timesteps", str(total), "--eval-freq", str(args.warmup),
-                            "--eval-episodes", "1", "--output-dir", output_dir, "--checkpoint-freq", str(10**9)])
+                            "--eval-episodes", "1", "--output-dir", output_dir, "--checkpoint-freq", str(10**9),
+                            "--kernels", kernels])
 
 
 def updates_on_random_data(args, obs_dim, act_dim):
-    """Part 2: updates/s of both on the same random transitions (one teacher episode, 1e5 own)."""
+    """Part 2: updates/s of both on the same random transitions (one teacher episode, 1e5 own),
+    SAIL with each kind of CPU kernels; returns plain's rate, SAIL's rates and auto's choice."""
     rng = np.random.default_rng(0)
     n = 100_000
     data = [rng.standard_normal((n, obs_dim)).astype(np.float32), rng.uniform(-1, 1, (n, act_dim)).astype(np.float32),
@@ -180,30 +186,40 @@ def updates_on_random_data(args, obs_dim, act_dim):
         plain.storage[k][:] = v.reshape(n, -1)
     plain.size = n
 
-    sargs = bench_args(args, args.env, tempfile.gettempdir(), 1)
+    sargs = bench_args(args, args.env, tempfile.gettempdir(), args.warmup)
     self_buffer = ReplayBuffer(obs_dim, act_dim, n)
     for t, v in zip(self_buffer.tensors(), data):
         t.copy_(torch.from_numpy(v))
     self_buffer.size = n
     teacher_buffer = TeacherBuffer(10_000)
     teacher_buffer.add_episode(0.0, *(torch.from_numpy(data[i][:1000]) for i in (0, 1, 3, 4)))
-    agent = td3.TD3(obs_dim, act_dim, -np.ones(act_dim), np.ones(act_dim), hidden=[args.hidden] * 2)
-    disc = sail.Discriminator(obs_dim, act_dim, [args.hidden] * 2)
-    disc_optimizer = td3.make_adam(disc.parameters(), sargs.disc_lr)
 
-    def sail_update():
-        if agent.num_updates % sargs.disc_freq == 0:  # D is trained every --disc-freq env steps
-            sail.train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, sargs)
-        sail.td3_update(agent, disc, teacher_buffer, self_buffer, 0.5, sargs)
+    def sail_update_fn(kernels):
+        agent = td3.TD3(obs_dim, act_dim, -np.ones(act_dim), np.ones(act_dim), hidden=[args.hidden] * 2)
+        disc = sail.Discriminator(obs_dim, act_dim, [args.hidden] * 2)
+        disc_optimizer = td3.make_adam(disc.parameters(), sargs.disc_lr)
+        cpu_kernels.apply(kernels, [*agent.networks(), disc])
 
-    for fn in (lambda: plain.update(args.batch_size), sail_update):  # warm both up
+        def update():
+            if agent.num_updates % sargs.disc_freq == 0:  # D is trained every --disc-freq env steps
+                sail.train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, sargs)
+            sail.td3_update(agent, disc, teacher_buffer, self_buffer, 0.5, sargs)
+        return agent, disc, update
+
+    kinds = ["torch", "onednn"] if cpu_kernels.AVAILABLE else ["torch"]
+    fns = {"plain": lambda: plain.update(args.batch_size)}
+    for kind in kinds:
+        agent, disc, fns[kind] = sail_update_fn(kind)
+    agent, disc, _ = sail_update_fn("torch")
+    auto = cpu_kernels.choose("auto", [agent.actor.net, agent.critic.q1.net, disc.net], args.batch_size, "cpu")
+    for fn in fns.values():  # warm all up
         for _ in range(50):
             fn()
-    rates = {"plain": [], "sail": []}
-    for _ in range(3):  # interleaved, so that a disturbance hits both
-        rates["plain"].append(per_second(lambda: plain.update(args.batch_size), args.updates // 3, 1))
-        rates["sail"].append(per_second(sail_update, args.updates // 3, 1))
-    return max(rates["plain"]), max(rates["sail"])
+    rates = {name: [] for name in fns}
+    for _ in range(3):  # interleaved, so that a disturbance hits all
+        for name, fn in fns.items():
+            rates[name].append(per_second(fn, args.updates // 3, 1))
+    return max(rates.pop("plain")), {k: max(v) for k, v in rates.items()}, auto
 
 
 def plain_loop_env_steps(args):
@@ -230,7 +246,12 @@ def sail_env_steps(args):
     row (every --warmup steps) is the warm-up, the others are timed."""
     with tempfile.TemporaryDirectory() as tmp:
         sargs = bench_args(args, args.env, tmp, args.warmup + args.env_steps)
-        sail.train(sargs)
+        with open(os.devnull, "w") as devnull:  # its run-folder lines
+            stdout, sys.stdout = sys.stdout, devnull
+            try:
+                sail.train(sargs)
+            finally:
+                sys.stdout = stdout
         run_dir = os.path.join(tmp, os.listdir(tmp)[0])
         with open(os.path.join(run_dir, "progress.csv")) as f:
             rows = list(csv.DictReader(f))
@@ -258,10 +279,12 @@ disc_optimizer = sail.make_adam(disc.parameters(), args.disc_lr)
 sail.train_discriminator(disc, disc_optimizer, teacher, buffer, args)
 for _ in range(100):
     sail.td3_update(agent, disc, teacher, buffer, 0.5, args)
-run_dir = sail.make_run_dir(args)
+run_dir = sail.plumbing.make_run_dir(args.output_dir, "memory", {{}})
 state = {{"global_step": 10**6, "rows": [], "train_time": 0.0}}
-sail.save_checkpoint(run_dir, state, agent, disc, disc_optimizer, buffer, teacher, env, eval_env,
-                     np.random.default_rng(0), env.reset()[0])
+sail.plumbing.save_checkpoint(run_dir + "/checkpoint.pt", {{"agent": agent.state_dict(), "disc": disc.state_dict(),
+    "disc_optimizer": disc_optimizer.state_dict(), "self_buffer": buffer.state_dict(),
+    "teacher_buffer": teacher.state_dict(), "env": sail.get_env_state(env), "eval_env": sail.get_env_state(eval_env),
+    "loop": state, "rng": sail.plumbing.rng_state(np.random.default_rng(0)), "obs": env.reset()[0]}})
 print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2)
 """
 
@@ -276,6 +299,15 @@ def peak_memory_gb(args):
     return float(out.stdout.split()[-1])
 
 
+def cpu_model():
+    """The CPU's model name, as the kernel reports it (speed figures mean little without it)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine()
+
+
 def main():
     args = parse_args()
     torch.set_num_threads(args.threads)
@@ -285,22 +317,21 @@ def main():
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     print(f"bench.py: {args.env} (obs {obs_dim} incl. time feature, act {act_dim}), hidden {args.hidden}-{args.hidden}, "
           f"batch {args.batch_size}, {args.threads} thread(s), torch {torch.__version__}, {time.strftime('%Y-%m-%d')}")
+    print(f"CPU: {cpu_model()}, {os.cpu_count()} cores")
 
     mkl, onednn = matmul_gflops()
     flops = update_flops(obs_dim, act_dim, args.hidden, args.batch_size)
-    plain_flops = update_flops(obs_dim, act_dim, args.hidden, args.batch_size, discriminator=False)
-    limit = onednn * 1e9 / flops
+    best = max(mkl, onednn)
     print(f"1. 256x256x256 matmul: torch.mm (MKL) {mkl:.0f} GFLOP/s, oneDNN {onednn:.0f} GFLOP/s; "
-          f"one SAIL update is {flops / 1e9:.3f} GFLOP -> limit {limit:.0f} updates/s "
-          f"({mkl * 1e9 / flops:.0f} at torch.mm's rate)")
+          f"one SAIL update is {flops / 1e9:.3f} GFLOP -> limit {best * 1e9 / flops:.0f} updates/s at the faster rate")
 
-    plain, fast = updates_on_random_data(args, obs_dim, act_dim)
-    print(f"2. updates/s on random data: plain TD3 {plain:.0f}, SAIL {fast:.0f}, ratio {fast / plain:.2f}; "
-          f"SAIL update at {fast / limit:.0%} of the compute limit (plain TD3 at {plain * plain_flops / (onednn * 1e9):.0%})")
+    plain, fast, auto = updates_on_random_data(args, obs_dim, act_dim)
+    print(f"2. updates/s on random data: plain TD3 {plain:.0f}; SAIL " + ", ".join(
+        f"--kernels {k} {v:.0f} ({v / plain:.2f}x)" for k, v in fast.items()) + f"; auto picks {auto}")
 
     plain_sps, sail_sps = plain_loop_env_steps(args), sail_env_steps(args)
     print(f"3. env steps/s on {args.env} (1 update per step, after {args.warmup} random steps): "
-          f"plain TD3 loop {plain_sps:.0f}, SAIL {sail_sps:.0f}, ratio {sail_sps / plain_sps:.2f}")
+          f"plain TD3 loop {plain_sps:.0f}, SAIL (--kernels auto) {sail_sps:.0f}, ratio {sail_sps / plain_sps:.2f}")
 
     if not args.skip_memory:
         print(f"4. peak memory of a Walker2d-v5 run with a full 1M-transition self buffer, after a checkpoint: "

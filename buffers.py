@@ -11,7 +11,7 @@ import zipfile
 import numpy as np
 import torch
 
-from envs import ConfigError
+from plumbing import ConfigError, atomic_write
 
 DEMO_KEYS = ("observations", "actions", "next_observations", "rewards", "terminations",
              "truncations", "episode_lengths", "episode_returns", "env_id")
@@ -52,6 +52,12 @@ class ReplayBuffer:
         window = min(window, self.size)
         back = torch.randint(1, window + 1, (batch_size,))
         return self.gather((self.ptr - back) % self.capacity)
+
+    def latest(self, n):
+        """The n most recent transitions (obs, actions, next_obs, terminated): the episode that
+        just ended, for the teacher buffer."""
+        obs, actions, _, next_obs, terminated = self.gather(torch.arange(self.ptr - n, self.ptr) % self.capacity)
+        return obs, actions, next_obs, terminated
 
     def gather(self, idx):
         return tuple(t[idx] for t in self.tensors())
@@ -170,22 +176,6 @@ def save_demos(path, episodes, env_id):
         "mujoco_version": np.array(_version("mujoco")),
     }
     atomic_write(path, lambda f: np.savez_compressed(f, **data))
-
-
-def atomic_write(path, write):
-    """Calls write(file) on a temp file beside `path`, then renames it to `path`: an interrupted
-    write never leaves a broken file behind."""
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = f"{path}.tmp{os.getpid()}"
-    try:
-        with open(tmp, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):  # the write failed: leave no temp file behind
-            os.remove(tmp)
 
 
 def default_demo_path(env_id):

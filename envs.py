@@ -12,29 +12,12 @@ Demonstrations are stored without features; `add_features` turns a recorded epis
 transitions the wrappers below would have produced online, with the same helper functions.
 """
 
-import argparse
 import copy
-import sys
 
 import gymnasium as gym
 import numpy as np
 
-
-def first_line(error):
-    """An exception as one line of text, for one-line error messages."""
-    return (str(error).strip().splitlines() or [type(error).__name__])[0]
-
-
-class ConfigError(Exception):
-    """Bad user input (env id, demo file, flag value): scripts print it as one line and exit."""
-
-
-class ArgumentParser(argparse.ArgumentParser):
-    """argparse that reports a bad flag as one line (no usage block) and exits with code 2."""
-
-    def error(self, message):
-        print(f"{self.prog}: error: {message}", file=sys.stderr)
-        sys.exit(2)
+from plumbing import ConfigError, first_line
 
 
 def time_left(t, max_steps):
@@ -52,41 +35,21 @@ def absorbing_state(obs_dim):
 class SparseEpisodicReward(gym.Wrapper):
     """Reward 0 on every step but the last, which carries the episodic return r_e.
 
-    The info dict is replaced: MuJoCo envs put the reward terms in it (reward_forward, x_velocity,
-    ...), and none of that may reach the learner. At the end of an episode info holds
-    `episodic_return` and `episode_length` (for logging and for the teacher-buffer promotion).
+    It wraps gymnasium's RecordEpisodeStatistics, whose info["episode"]["r"] is the sum of the
+    dense rewards. The info dict is replaced: MuJoCo envs put the reward terms in it
+    (reward_forward, x_velocity, ...), and none of that may reach the learner. At the end of an
+    episode info holds only `episode` (return "r", length "l"), for logging and promotion.
     """
 
     def reset(self, **kwargs):
         obs, _ = self.env.reset(**kwargs)
-        self.episodic_return, self.episode_length = 0.0, 0
         return obs, {}
 
     def step(self, action):
-        obs, dense_reward, terminated, truncated, _ = self.env.step(action)
-        self.episodic_return += float(dense_reward)
-        self.episode_length += 1
+        obs, _, terminated, truncated, info = self.env.step(action)
         if terminated or truncated:
-            info = {"episodic_return": self.episodic_return, "episode_length": self.episode_length}
-            return obs, self.episodic_return, terminated, truncated, info
+            return obs, float(info["episode"]["r"]), terminated, truncated, {"episode": info["episode"]}
         return obs, 0.0, terminated, truncated, {}
-
-
-class DenseEpisodeStatistics(gym.Wrapper):
-    """Dense reward passed through (teacher training), with the same end-of-episode info."""
-
-    def reset(self, **kwargs):
-        obs, info = self.env.reset(**kwargs)
-        self.episodic_return, self.episode_length = 0.0, 0
-        return obs, info
-
-    def step(self, action):
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        self.episodic_return += float(reward)
-        self.episode_length += 1
-        if terminated or truncated:
-            info = dict(info, episodic_return=self.episodic_return, episode_length=self.episode_length)
-        return obs, reward, terminated, truncated, info
 
 
 class TimeFeature(gym.ObservationWrapper):
@@ -160,15 +123,17 @@ def make_env(env_id, seed, sparse=True, time_feature=True, absorbing=False):
     """
     try:
         env = gym.make(env_id)
-    except gym.error.Error as e:
-        raise ConfigError(f"unknown environment {env_id!r}: {e}") from None
+    except (gym.error.Error, ImportError, AttributeError, ValueError) as e:  # also "nosuchmodule:Foo-v0"
+        raise ConfigError(f"unknown environment {env_id!r}: {first_line(e)}") from None
     if not isinstance(env.action_space, gym.spaces.Box):
         raise ConfigError(f"{env_id} has a {type(env.action_space).__name__} action space; "
                           "TD3 needs a continuous Box action space")
     if not isinstance(env.observation_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
         raise ConfigError(f"{env_id} needs a flat Box observation space")
     max_steps = env.spec.max_episode_steps or 1000
-    env = SparseEpisodicReward(env) if sparse else DenseEpisodeStatistics(env)
+    env = gym.wrappers.RecordEpisodeStatistics(env)  # info["episode"]["r"]: the dense episodic return
+    if sparse:
+        env = SparseEpisodicReward(env)
     if time_feature:
         env = TimeFeature(env, max_steps)
     if absorbing:
@@ -217,7 +182,8 @@ def rollout(env, policy):
     """Runs one episode of `policy` (obs -> action) and returns its transitions.
 
     The dict holds observations, actions, rewards, next_observations (as the env gave them),
-    terminated / truncated for the episode, and episodic_return from the wrappers' info.
+    terminated / truncated for the episode, and episodic_return, the dense return of the episode
+    (RecordEpisodeStatistics' info["episode"]["r"]).
     """
     obs, _ = env.reset()
     steps = []
@@ -231,7 +197,7 @@ def rollout(env, policy):
     observations, actions, rewards, next_observations = (np.array(x) for x in zip(*steps))
     return {"observations": observations, "actions": actions, "rewards": rewards,
             "next_observations": next_observations, "terminated": bool(terminated),
-            "truncated": bool(truncated), "episodic_return": info["episodic_return"]}
+            "truncated": bool(truncated), "episodic_return": float(info["episode"]["r"])}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -6,7 +6,12 @@ The teacher is plain TD3 (td3.py) on the dense MuJoCo reward. Every --eval-freq 
 deterministic policy is evaluated; once the mean return lies in the target band, episodes are
 recorded and those whose return is also in the band are kept. With --num-episodes of them the
 demo file is written (atomically) and the script ends. The band defaults follow the teacher
-quality of the paper (REFERENCE.md), clearly below what TD3 reaches with dense rewards.
+quality of the paper's released code (github.com/illidanlab/SAIL: Hopper ~1480, Walker2d ~1675,
+HalfCheetah ~5650, Swimmer ~121, Ant ~1130), clearly below what TD3 reaches with dense rewards.
+
+The demo file goes to demos/<env>.npz beside this script (where sail.py looks for it); an
+existing file is only replaced with --force. Ctrl-C or SIGTERM stops the teacher cleanly after
+a checkpoint (with --checkpoint), which a later run with the same --checkpoint continues.
 """
 
 import os
@@ -16,8 +21,10 @@ import time
 import numpy as np
 import torch
 
-from buffers import ReplayBuffer, atomic_write, save_demos
-from envs import ArgumentParser, ConfigError, first_line, get_env_state, make_env, rollout, set_env_state
+import plumbing
+from buffers import ReplayBuffer, default_demo_path, save_demos
+from envs import get_env_state, make_env, rollout, set_env_state
+from plumbing import ConfigError
 from td3 import TD3
 
 # teacher return bands (low, high) at the paper's teacher quality
@@ -31,13 +38,14 @@ BANDS = {
 
 
 def parse_args(argv=None):
-    p = ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = plumbing.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="Hopper-v5", help="gymnasium env id")
     p.add_argument("--seed", type=int, default=0, help="seed of env, action space and torch")
     p.add_argument("--band", type=float, nargs=2, metavar=("LOW", "HIGH"),
                    help="teacher return band (default: the paper's quality for the five envs)")
     p.add_argument("--num-episodes", type=int, default=10, help="episodes to record")
-    p.add_argument("--output", help="demo file (default: demos/<env>.npz)")
+    p.add_argument("--output", help="demo file (default: demos/<env>.npz beside this script)")
+    p.add_argument("--force", action="store_true", help="replace an existing demo file")
     p.add_argument("--total-timesteps", type=int, default=1_000_000,
                    help="give up if the band is not reached after this many env steps")
     p.add_argument("--learning-starts", type=int, default=10_000, help="uniformly random steps first")
@@ -58,6 +66,10 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     if args.band is None:
         if args.env not in BANDS:
+            try:
+                make_env(args.env, 0)
+            except ConfigError as e:
+                p.error(str(e))
             p.error(f"no default band for {args.env}: give --band LOW HIGH")
         args.band = BANDS[args.env]
     if args.band[0] >= args.band[1]:
@@ -68,21 +80,21 @@ def parse_args(argv=None):
             p.error(f"--{name.replace('_', '-')} must be positive")
     if args.learning_starts < 0:
         p.error("--learning-starts must be >= 0")
-    args.output = args.output or os.path.join("demos", f"{args.env}.npz")
+    args.output = args.output or default_demo_path(args.env)
     return args
 
 
-def main(argv=None):
-    args = parse_args(argv)
+def train(args):
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
-    try:
-        # The teacher sees raw observations and the dense reward; demos are stored raw.
-        env = make_env(args.env, args.seed, sparse=False, time_feature=False)
-        eval_env = make_env(args.env, args.seed + 10_000, sparse=False, time_feature=False)
-    except ConfigError as e:
-        sys.exit(f"make_demos.py: error: {e}")
+    # The teacher sees raw observations and the dense reward; demos are stored raw.
+    env = make_env(args.env, args.seed, sparse=False, time_feature=False)
+    eval_env = make_env(args.env, args.seed + 10_000, sparse=False, time_feature=False)
+    if os.path.exists(args.output) and not args.force:
+        raise ConfigError(f"{args.output} exists; give --force to replace it, or another --output")
+    for path in filter(None, (args.output, args.checkpoint)):  # found now, not after an hour of training
+        plumbing.check_writable(path)
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     low, high = env.action_space.low, env.action_space.high
     agent = TD3(obs_dim, act_dim, low, high, hidden=args.hidden, lr=args.lr, gamma=args.gamma)
@@ -93,64 +105,71 @@ def main(argv=None):
     obs, _ = env.reset()
     first_step = 1
     if args.checkpoint and os.path.isfile(args.checkpoint):
-        try:
-            state = torch.load(args.checkpoint, weights_only=False)
-        except Exception as e:  # checkpoints are written atomically: this is another program's file
-            sys.exit(f"make_demos.py: error: cannot read the checkpoint {args.checkpoint}: {first_line(e)}")
+        state = plumbing.load_checkpoint(args.checkpoint)
         agent.load_state_dict(state["agent"])
         buffer.load_state_dict(state["buffer"])
         set_env_state(env, state["env"])
         set_env_state(eval_env, state["eval_env"])
-        rng.bit_generator.state = state["numpy_rng"]
-        torch.set_rng_state(state["torch_rng"])
+        plumbing.set_rng_state(rng, state["rng"])
         obs, first_step = state["obs"], state["global_step"] + 1
         print(f"resumed from {args.checkpoint} at step {state['global_step']}", flush=True)
+
+    def save_checkpoint(global_step):
+        plumbing.save_checkpoint(args.checkpoint, {
+            "agent": agent.state_dict(), "buffer": buffer.state_dict(), "env": get_env_state(env),
+            "eval_env": get_env_state(eval_env), "rng": plumbing.rng_state(rng), "obs": obs,
+            "global_step": global_step})
+
     start = time.time()
-    for global_step in range(first_step, args.total_timesteps + 1):
-        if global_step <= args.learning_starts:
-            action = env.action_space.sample()
-        else:
-            action = agent.explore(obs, args.exploration_noise, rng)
-        next_obs, reward, terminated, truncated, info = env.step(action)
-        buffer.add(obs, action, reward, next_obs, terminated)
-        obs = next_obs
-        if terminated or truncated:
-            obs, _ = env.reset()
+    with plumbing.StopRequest() as stop:
+        for global_step in range(first_step, args.total_timesteps + 1):
+            if stop.requested:
+                if args.checkpoint:
+                    save_checkpoint(global_step - 1)
+                    print(f"stopped at step {global_step - 1}; the same command continues from {args.checkpoint}")
+                else:
+                    print(f"stopped at step {global_step - 1} (no --checkpoint: nothing kept)")
+                return stop.exit_code
+            if global_step <= args.learning_starts:
+                action = env.action_space.sample()
+            else:
+                action = agent.explore(obs, args.exploration_noise, rng)
+            next_obs, reward, terminated, truncated, info = env.step(action)
+            buffer.add(obs, action, reward, next_obs, terminated)
+            obs = next_obs
+            if terminated or truncated:
+                obs, _ = env.reset()
 
-        if global_step > args.learning_starts:
-            obs_b, act_b, rew_b, next_obs_b, term_b = buffer.sample(args.batch_size)
-            agent.update(obs_b, act_b, rew_b, next_obs_b, term_b)
+            if global_step > args.learning_starts:
+                obs_b, act_b, rew_b, next_obs_b, term_b = buffer.sample(args.batch_size)
+                agent.update(obs_b, act_b, rew_b, next_obs_b, term_b)
 
-        if args.checkpoint and global_step % args.checkpoint_freq == 0:
-            state = {"agent": agent.state_dict(), "buffer": buffer.state_dict(), "env": get_env_state(env),
-                     "eval_env": get_env_state(eval_env), "numpy_rng": rng.bit_generator.state,
-                     "torch_rng": torch.get_rng_state(), "obs": obs, "global_step": global_step}
-            atomic_write(args.checkpoint, lambda f: torch.save(state, f))  # noqa: B023
+            if args.checkpoint and global_step % args.checkpoint_freq == 0:
+                save_checkpoint(global_step)
 
-        if global_step % args.eval_freq == 0 and global_step > args.learning_starts:  # a trained teacher only
-            returns = [rollout(eval_env, agent.act)["episodic_return"] for _ in range(args.eval_episodes)]
-            mean = float(np.mean(returns))
-            print(f"step {global_step}: teacher eval return {mean:.1f} +- {np.std(returns):.1f} "
-                  f"({(global_step - first_step + 1) / (time.time() - start):.0f} steps/s)", flush=True)
-            if not in_band(mean):
-                continue
-            episodes = []
-            for _ in range(args.record_attempts):
-                episode = rollout(eval_env, agent.act)
-                if in_band(episode["episodic_return"]):
-                    episodes.append(episode)
-                if len(episodes) == args.num_episodes:
-                    save_demos(args.output, episodes, args.env)
-                    rets = [ep["episodic_return"] for ep in episodes]
-                    lens = [len(ep["actions"]) for ep in episodes]
-                    print(f"wrote {args.output}: {len(episodes)} episodes after {global_step} teacher steps, "
-                          f"returns {np.mean(rets):.1f} +- {np.std(rets):.1f} (min {min(rets):.1f}, "
-                          f"max {max(rets):.1f}), lengths {min(lens)}-{max(lens)}")
-                    return 0
-            print(f"  only {len(episodes)} of {args.record_attempts} episodes in the band; training on")
-    sys.exit(f"make_demos.py: error: the teacher did not reach the band {args.band} "
-             f"within {args.total_timesteps} steps")
+            if global_step % args.eval_freq == 0 and global_step > args.learning_starts:  # a trained teacher only
+                returns = [rollout(eval_env, agent.act)["episodic_return"] for _ in range(args.eval_episodes)]
+                mean = float(np.mean(returns))
+                print(f"step {global_step}: teacher eval return {mean:.1f} +- {np.std(returns):.1f} "
+                      f"({(global_step - first_step + 1) / (time.time() - start):.0f} steps/s)", flush=True)
+                if not in_band(mean):
+                    continue
+                episodes = []
+                for _ in range(args.record_attempts):
+                    episode = rollout(eval_env, agent.act)
+                    if in_band(episode["episodic_return"]):
+                        episodes.append(episode)
+                    if len(episodes) == args.num_episodes:
+                        save_demos(args.output, episodes, args.env)
+                        rets = [ep["episodic_return"] for ep in episodes]
+                        lens = [len(ep["actions"]) for ep in episodes]
+                        print(f"wrote {args.output}: {len(episodes)} episodes after {global_step} teacher steps, "
+                              f"returns {np.mean(rets):.1f} +- {np.std(rets):.1f} (min {min(rets):.1f}, "
+                              f"max {max(rets):.1f}), lengths {min(lens)}-{max(lens)}")
+                        return 0
+                print(f"  only {len(episodes)} of {args.record_attempts} episodes in the band; training on")
+    raise ConfigError(f"the teacher did not reach the band {args.band} within {args.total_timesteps} steps")
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(plumbing.run_main("make_demos.py", train, parse_args()))

@@ -25,7 +25,7 @@ from collections import defaultdict
 import numpy as np
 
 from buffers import default_demo_path
-from envs import ArgumentParser
+from plumbing import ArgumentParser
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

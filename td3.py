@@ -5,12 +5,10 @@ is trained (make_demos.py), the discriminator reward r'(s, a) in SAIL (sail.py).
 else is the TD3 paper's algorithm: twin critics with the minimum of both as target (clipped
 double Q), target policy smoothing, delayed actor updates and Polyak-averaged target networks.
 
-Written for speed on a CPU without hiding the algorithm (bench.py measures each choice):
-  - every layer's matmuls run through oneDNN (`linear` below): on the AMD EPYC CPUs we test
-    on, MKL's sgemm (what F.linear calls) reaches about 100 GFLOP/s per core, oneDNN about 210;
-  - the actor step reads the critic with its parameters frozen, so no gradient is computed
-    for (or has to be cleared from) the critic;
-  - target networks are updated with one in-place foreach lerp; Adam is the fused kernel.
+Plain PyTorch: nn.Sequential networks, Adam. Three cheap habits keep it fast on a CPU: the actor
+step reads the critic with its parameters frozen (no critic gradient is computed), the target
+networks move with one in-place foreach lerp, and Adam runs its fused kernel. A faster matmul
+library, where one measures faster, is swapped in from outside (cpu_kernels.py).
 """
 
 import copy
@@ -20,76 +18,23 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-ONEDNN = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
-ACTIVATIONS = {"relu": F.relu, "tanh": torch.tanh}
 
-
-def linear(x, weight, bias=None, activation=None):
-    """activation(x weight^T + bias): F.linear, then "relu", "tanh" or nothing.
-
-    On float32 CPU matmuls of 16 or more rows, inputs and outputs, oneDNN computes it with the
-    activation fused into its kernel (for smaller ones its fixed cost of about 15 us is more
-    than MKL takes). torch.tanh of a 256x256 batch alone takes longer here than the matmul.
-    """
-    if (ONEDNN and x.dim() == 2 and x.dtype == torch.float32 and x.device.type == "cpu"
-            and min(x.shape[0], *weight.shape) >= 16):
-        if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (x, weight, bias)):
-            return OneDNNLinear.apply(x, weight, bias, activation)
-        # oneDNN's linear op: input, weight, bias, fused activation, the activation's scalar
-        # arguments (none), its algorithm (default)
-        return torch.ops.mkldnn._linear_pointwise(x, weight, bias, activation or "none", [], "")
-    y = F.linear(x, weight, bias)
-    return ACTIVATIONS[activation](y) if activation else y
-
-
-class OneDNNLinear(torch.autograd.Function):
-    """activation(x weight^T + bias) with oneDNN's matmuls in the forward and backward pass.
-
-    The activation's derivative is taken from the output y: relu' = (y > 0), tanh' = 1 - y^2.
-    The backward is written with differentiable ops and `linear` itself, so it can be
-    differentiated again (the discriminator's gradient penalty needs that).
-    """
-
-    @staticmethod
-    def forward(ctx, x, weight, bias, activation):
-        y = torch.ops.mkldnn._linear_pointwise(x, weight, bias, activation or "none", [], "")
-        ctx.save_for_backward(x, weight, y)
-        ctx.has_bias, ctx.activation = bias is not None, activation
-        return y
-
-    @staticmethod
-    def backward(ctx, grad):
-        x, weight, y = ctx.saved_tensors
-        if ctx.activation == "relu":
-            grad = torch.ops.aten.threshold_backward(grad, y, 0)  # grad * (y > 0)
-        elif ctx.activation == "tanh":
-            grad = grad * (1 - y * y)
-        grad_x = linear(grad, weight.t()) if ctx.needs_input_grad[0] else None  # grad W
-        grad_weight = linear(grad.t(), x.t()) if ctx.needs_input_grad[1] else None  # grad^T x
-        grad_bias = grad.sum(0) if ctx.has_bias and ctx.needs_input_grad[2] else None
-        return grad_x, grad_weight, grad_bias, None
-
-
-class MLP(nn.Module):
-    """nn.Linear layers of the given sizes (initialised as usual), `activation` between them."""
-
-    def __init__(self, sizes, activation):
-        super().__init__()
-        self.layers = nn.ModuleList(nn.Linear(fan_in, fan_out) for fan_in, fan_out in zip(sizes[:-1], sizes[1:]))
-        self.activation = activation
-
-    def forward(self, x):
-        for i, layer in enumerate(self.layers):
-            x = linear(x, layer.weight, layer.bias, self.activation if i < len(self.layers) - 1 else None)
-        return x
+def mlp(sizes, activation=nn.ReLU):
+    """nn.Linear layers of the given sizes with `activation` between them (none at the end)."""
+    layers = []
+    for i, (fan_in, fan_out) in enumerate(zip(sizes[:-1], sizes[1:])):
+        layers.append(nn.Linear(fan_in, fan_out))
+        if i < len(sizes) - 2:
+            layers.append(activation())
+    return nn.Sequential(*layers)
 
 
 class Actor(nn.Module):
-    """Deterministic policy: MLP with ReLU, tanh output scaled to the action bounds."""
+    """Deterministic policy pi(s): MLP with ReLU, tanh output scaled to the action bounds."""
 
     def __init__(self, obs_dim, act_dim, hidden, action_low, action_high):
         super().__init__()
-        self.net = MLP([obs_dim, *hidden, act_dim], "relu")
+        self.net = mlp([obs_dim, *hidden, act_dim])
         low = torch.as_tensor(action_low, dtype=torch.float32)
         high = torch.as_tensor(action_high, dtype=torch.float32)
         self.register_buffer("action_scale", (high - low) / 2)
@@ -99,17 +44,27 @@ class Actor(nn.Module):
         return torch.tanh(self.net(obs)) * self.action_scale + self.action_bias
 
 
-class TwinCritic(nn.Module):
-    """Q1(s, a) and Q2(s, a): two independent MLPs with ReLU."""
+class Critic(nn.Module):
+    """Q(s, a): MLP with ReLU on the concatenated observation and action."""
 
     def __init__(self, obs_dim, act_dim, hidden):
         super().__init__()
-        self.q1 = MLP([obs_dim + act_dim, *hidden, 1], "relu")
-        self.q2 = MLP([obs_dim + act_dim, *hidden, 1], "relu")
+        self.net = mlp([obs_dim + act_dim, *hidden, 1])
 
     def forward(self, obs, action):
-        x = torch.cat([obs, action], dim=-1)
-        return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)
+        return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)
+
+
+class TwinCritic(nn.Module):
+    """Q1(s, a) and Q2(s, a): two independent critics."""
+
+    def __init__(self, obs_dim, act_dim, hidden):
+        super().__init__()
+        self.q1 = Critic(obs_dim, act_dim, hidden)
+        self.q2 = Critic(obs_dim, act_dim, hidden)
+
+    def forward(self, obs, action):
+        return self.q1(obs, action), self.q2(obs, action)
 
 
 def make_adam(params, lr):
@@ -138,8 +93,12 @@ class TD3:
         self.action_high = torch.as_tensor(action_high, dtype=torch.float32, device=self.device)
         self.action_bounds = (np.asarray(action_low, np.float32), np.asarray(action_high, np.float32))
         self.num_updates = 0
-        self._online = [*self.actor.parameters(), *self.critic.parameters()]
-        self._target = [*self.actor_target.parameters(), *self.critic_target.parameters()]
+        self._online_params = [*self.actor.parameters(), *self.critic.parameters()]
+        self._target_params = [*self.actor_target.parameters(), *self.critic_target.parameters()]
+
+    def networks(self):
+        """Every network of the agent (for cpu_kernels, which swaps their layers' kernels)."""
+        return [self.actor, self.critic, self.actor_target, self.critic_target]
 
     @torch.no_grad()
     def act(self, obs):
@@ -178,13 +137,13 @@ class TD3:
 
         if self.num_updates % self.policy_delay == 0:
             self.critic.requires_grad_(False)  # the actor's gradient passes through a fixed Q1
-            actor_loss = -self.critic.q1(torch.cat([obs, self.actor(obs)], dim=-1)).mean()
+            actor_loss = -self.critic.q1(obs, self.actor(obs)).mean()
             self.actor_optimizer.zero_grad(set_to_none=True)
             actor_loss.backward()
             self.critic.requires_grad_(True)
             self.actor_optimizer.step()
             with torch.no_grad():  # Polyak averaging: theta' <- (1 - tau) theta' + tau theta
-                torch._foreach_lerp_(self._target, self._online, self.tau)
+                torch._foreach_lerp_(self._target_params, self._online_params, self.tau)
             losses["actor_loss"] = actor_loss.detach()
         return losses
 

@@ -11,9 +11,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-import td3
+import cpu_kernels
 from buffers import ReplayBuffer, TeacherBuffer, load_demos, mixed_batch, save_demos
-from envs import ConfigError, absorbing_state, add_features, make_env, rollout
+from envs import absorbing_state, add_features, make_env, rollout
+from plumbing import ConfigError
 from td3 import TD3
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -93,9 +94,9 @@ def test_sparse_reward_is_zero_then_the_exact_dense_sum(env_id, ends_by):
         assert len(sparse_rewards) == 1000
     assert all(r == 0.0 for r in sparse_rewards[:-1])
     assert sparse_rewards[-1] == pytest.approx(sum(dense_rewards), rel=1e-12)
-    assert info["episodic_return"] == sparse_rewards[-1]
-    assert info["episode_length"] == len(sparse_rewards)
-    assert set(info) == {"episodic_return", "episode_length"}
+    assert info["episode"]["r"] == sparse_rewards[-1]  # gymnasium's RecordEpisodeStatistics
+    assert info["episode"]["l"] == len(sparse_rewards)
+    assert set(info) == {"episode"}
 
 
 def test_time_feature_counts_down_to_zero_at_the_time_limit():
@@ -123,7 +124,7 @@ def test_absorbing_state_loops_once_and_is_not_terminal():
     assert reward == 0.0 and not truncated
     obs, reward, terminated, truncated, info = env.step(env.action_space.sample())  # self-loop
     np.testing.assert_array_equal(obs, absorbing_state(11))
-    assert truncated and not terminated and reward == info["episodic_return"] != 0.0
+    assert truncated and not terminated and reward == info["episode"]["r"] != 0.0
     assert all(r == 0.0 for r in rewards)
 
 
@@ -325,13 +326,13 @@ def test_td3_learns_a_one_step_bandit():
 
 @pytest.mark.parametrize("activation", [None, "relu", "tanh"])
 def test_onednn_linear_equals_f_linear_up_to_second_derivatives(activation):
-    """td3.linear (oneDNN) computes what F.linear and the activation do: outputs with and
+    """cpu_kernels.linear (oneDNN) computes what F.linear and the activation do: outputs with and
     without autograd (the fused kernel), gradients, and gradients of gradients."""
     torch.manual_seed(0)
     x, weight, bias = torch.randn(64, 24), torch.randn(32, 24) / 5, torch.randn(32)
     act = {None: lambda y: y, "relu": F.relu, "tanh": torch.tanh}[activation]
     plain = lambda x, w, b: act(F.linear(x, w, b))  # noqa: E731
-    fast = lambda x, w, b: td3.linear(x, w, b, activation)  # noqa: E731
+    fast = lambda x, w, b: cpu_kernels.linear(x, w, b, activation)  # noqa: E731
     with torch.no_grad():
         torch.testing.assert_close(fast(x, weight, bias), plain(x, weight, bias), rtol=1e-4, atol=1e-5)
     results = []
@@ -346,14 +347,15 @@ def test_onednn_linear_equals_f_linear_up_to_second_derivatives(activation):
     graph = {results[0][0].grad_fn}
     while not any("OneDNNLinear" in type(g).__name__ for g in graph):  # the fast path was taken
         graph = {f for g in graph for f, _ in g.next_functions if f is not None}
-        assert graph, "td3.linear did not use OneDNNLinear"
+        assert graph, "cpu_kernels.linear did not use OneDNNLinearFunction"
     for fast_result, plain_result in zip(*results):
         torch.testing.assert_close(fast_result, plain_result, rtol=1e-4, atol=1e-5)
 
 
-def test_td3_update_equals_the_straightforward_formulas(monkeypatch):
-    """One TD3.update (oneDNN layers, fixed-Q1 actor step, fused Adam, foreach Polyak) against
-    the TD3 formulas written out with F.linear layers on copies of the same networks."""
+@pytest.mark.parametrize("kernels", ["torch", "onednn"])
+def test_td3_update_equals_the_straightforward_formulas(kernels):
+    """One TD3.update (with either CPU kernels: fused oneDNN layers or plain torch; fixed-Q1 actor
+    step, fused Adam, foreach Polyak) against the TD3 formulas written out on plain copies."""
     torch.manual_seed(0)
     low, high = torch.tensor([-1.0, -2.0]), torch.tensor([1.0, 2.0])
     agent = TD3(obs_dim=5, act_dim=2, action_low=low, action_high=high, hidden=(64, 64), policy_delay=1)
@@ -362,11 +364,13 @@ def test_td3_update_equals_the_straightforward_formulas(monkeypatch):
     rewards, terminated = torch.randn(128), (torch.rand(128) < 0.2).float()
     actor, critic = copy.deepcopy(agent.actor), copy.deepcopy(agent.critic)
     actor_target, critic_target = copy.deepcopy(agent.actor_target), copy.deepcopy(agent.critic_target)
+    cpu_kernels.apply(kernels, agent.networks())
+    if kernels == "onednn":  # the fast path is really taken
+        assert any(isinstance(m, cpu_kernels.OneDNNLinear) and m.activation == "relu" for m in agent.critic.modules())
 
     torch.manual_seed(1)
     losses = agent.update(obs, actions, rewards, next_obs, terminated)
 
-    monkeypatch.setattr(td3, "ONEDNN", False)  # every layer below is F.linear
     torch.manual_seed(1)
     noise = (torch.randn_like(actions) * 0.2 * high).clamp(-0.5 * high, 0.5 * high)
     with torch.no_grad():
@@ -474,7 +478,7 @@ def test_sail_reward_is_softplus_of_the_logit_without_overflow():
     torch.testing.assert_close(F.softplus(logits), -torch.log(1 - torch.sigmoid(logits.double())).float())
     disc = Discriminator(obs_dim=1, act_dim=1, hidden=[8])
     with torch.no_grad():
-        disc.net.layers[-1].bias.fill_(1000.0)  # a saturated D: sigmoid(logit) == 1.0 in float32
+        disc.net[-1].bias.fill_(1000.0)  # a saturated D: sigmoid(logit) == 1.0 in float32
     reward = shaped_reward(disc, torch.zeros(4, 1), torch.zeros(4, 1), "sail")
     assert torch.isfinite(reward).all() and (reward > 900).all()
 
@@ -505,16 +509,19 @@ SMOKE = {
     "anneal": ["--alpha-anneal-steps", "500"],
     "dac": ["--algo", "dac"],
     "td3": ["--algo", "td3"],
-    "bc": ["--algo", "bc", "--bc-steps", "300", "--eval-freq", "100"],
+    "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
 }
 
 
 @pytest.mark.parametrize("name", sorted(SMOKE))
 def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos):
-    proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--num-demos", "1",
-                      "--total-timesteps", "1600", "--learning-starts", "1000", "--eval-freq", "400",
-                      "--disc-freq", "200", "--output-dir", str(tmp_path), "--run-name", "run", "--save-model",
-                      *TINY, *SMOKE[name])
+    common = ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--num-demos", "1", "--output-dir", str(tmp_path),
+              "--run-name", "run", "--save-model", "--hidden", "32", "32", "--threads", "1", "--eval-episodes", "1"]
+    if name == "bc":
+        proc = run_script("bc.py", *common, *SMOKE[name])
+    else:
+        proc = run_script("sail.py", *common, "--total-timesteps", "1600", "--learning-starts", "1000",
+                          "--eval-freq", "400", "--disc-freq", "200", "--disc-hidden", "32", "32", *SMOKE[name])
     assert proc.returncode == 0, proc.stderr[-3000:]
     run_dir = tmp_path / "run"
     rows = read_csv(run_dir)
@@ -523,10 +530,11 @@ def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos
     model = torch.load(run_dir / "model.pt", weights_only=False)
     assert set(model["actor"]) and model["env"] == "Hopper-v5"
     config = json.load(open(run_dir / "config.json"))
-    assert "sail.py" in config["command"] and config["total_timesteps"] == 1600
     if name == "bc":
+        assert "bc.py" in config["command"] and config["algo"] == "bc"
         assert [int(r["updates"]) for r in rows] == [100, 200, 300]
         return
+    assert "sail.py" in config["command"] and config["total_timesteps"] == 1600
     assert [int(r["global_step"]) for r in rows] == [400, 800, 1200, 1600]
     assert int(rows[-1]["updates"]) == 601
     alphas = [float(r["alpha"]) for r in rows]
@@ -563,8 +571,10 @@ def test_promotion_switches_alpha_inside_the_loop(tmp_path, poor_hopper_demos):
 
 
 def test_resume_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos):
+    # fixed kernels: `auto` times them in each process and may choose differently in the two runs
+    kernels = "onednn" if cpu_kernels.AVAILABLE else "torch"
     common = ["sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--learning-starts", "500",
-              "--eval-freq", "250", "--disc-freq", "100", "--seed", "3", "--save-model", *TINY]
+              "--eval-freq", "250", "--disc-freq", "100", "--seed", "3", "--save-model", "--kernels", kernels, *TINY]
     straight = run_script(*common, "--total-timesteps", "1500", "--output-dir", str(tmp_path), "--run-name", "a")
     assert straight.returncode == 0, straight.stderr[-3000:]
     first = run_script(*common, "--total-timesteps", "880", "--output-dir", str(tmp_path), "--run-name", "b")

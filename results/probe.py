@@ -22,6 +22,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from buffers import default_demo_path, load_demos  # noqa: E402
 from envs import absorbing_state, add_features  # noqa: E402
+from plumbing import load_checkpoint  # noqa: E402
 from sail import Discriminator  # noqa: E402
 from td3 import Actor, TwinCritic  # noqa: E402
 
@@ -33,7 +34,7 @@ for name in ("config.json", "checkpoint.pt"):
     if not os.path.isfile(os.path.join(args.run_dir, name)):
         p.error(f"{args.run_dir} has no {name}: give a run folder made by sail.py")
 config = json.load(open(os.path.join(args.run_dir, "config.json")))
-state = torch.load(os.path.join(args.run_dir, "checkpoint.pt"), weights_only=False, map_location="cpu")
+state = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), map_location="cpu")
 self_obs = state["self_buffer"]["data"][0]
 obs_dim, act_dim = self_obs.shape[1], state["self_buffer"]["data"][1].shape[1]
 disc = Discriminator(obs_dim, act_dim, config["disc_hidden"])

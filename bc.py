@@ -1,0 +1,95 @@
+"""Behaviour cloning, the paper's simplest baseline: regress the teacher's actions.
+
+    python bc.py --env Hopper-v5
+
+The TD3 actor of td3.py learns the teacher's action for each teacher state (mean squared error)
+for --bc-steps gradient steps, without any env interaction, and is evaluated on the dense
+episodic return every --eval-freq gradient steps. The run folder has the layout of sail.py's
+(config.json, progress.csv with the same columns, model.pt with --save-model), so plot.py and
+`sail.py --evaluate RUN_DIR` read it as any other run.
+"""
+
+import argparse
+import os
+import sys
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+import plumbing
+from buffers import TeacherBuffer, default_demo_path, load_demos
+from envs import add_features, make_env, rollout
+from plumbing import ConfigError
+from sail import CSV_COLUMNS, save_model
+from td3 import TD3, make_adam
+
+
+def parse_args(argv=None):
+    p = plumbing.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--env", default="Walker2d-v5", help="gymnasium env id")
+    p.add_argument("--seed", type=int, default=1, help="seed of the eval env, numpy and torch")
+    p.add_argument("--demos", help="demo file (default: demos/<env>.npz)")
+    p.add_argument("--num-demos", type=int, default=1, help="teacher episodes used from the demo file")
+    p.add_argument("--bc-steps", type=int, default=20_000, help="gradient steps")
+    p.add_argument("--batch-size", type=int, default=256, help="teacher transitions per gradient step")
+    p.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate")
+    p.add_argument("--hidden", type=int, nargs="+", default=[256, 256], help="actor hidden sizes")
+    p.add_argument("--time-feature", action=argparse.BooleanOptionalAction, default=True,
+                   help="append 1 - t/T to obs (as SAIL's actor sees it)")
+    p.add_argument("--eval-freq", type=int, default=10_000, help="gradient steps between evaluations")
+    p.add_argument("--eval-episodes", type=int, default=5, help="episodes per evaluation")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--output-dir", default="runs", help="parent folder of the run folder")
+    p.add_argument("--run-name", help="run folder name (default: <env>__bc__<seed>__<time>)")
+    p.add_argument("--save-model", action="store_true", help="save the actor to model.pt at the end")
+    args = p.parse_args(argv)
+    for name in ("num_demos", "bc_steps", "batch_size", "eval_freq", "eval_episodes", "threads"):
+        if getattr(args, name) <= 0:
+            p.error(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
+    if min(args.hidden) <= 0 or args.lr < 0:
+        p.error("--hidden sizes must be positive and --lr >= 0")
+    args.algo, args.absorbing = "bc", False  # what plot.py and --evaluate read from config.json
+    return args
+
+
+def train(args):
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    eval_env = make_env(args.env, args.seed + 100, time_feature=args.time_feature)
+    obs_dim, act_dim = eval_env.observation_space.shape[0], eval_env.action_space.shape[0]
+    teacher_buffer = TeacherBuffer(10**9)
+    for episode in load_demos(args.demos or default_demo_path(args.env), args.env,
+                              obs_dim - int(args.time_feature), act_dim, args.num_demos):
+        teacher_buffer.add_episode(episode["episodic_return"],
+                                   *add_features(episode, eval_env.max_episode_steps, args.time_feature))
+    agent = TD3(obs_dim, act_dim, eval_env.action_space.low, eval_env.action_space.high, hidden=args.hidden)
+    optimizer = make_adam(agent.actor.parameters(), args.lr)
+    run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(args.env, "bc", args.seed),
+                                    vars(args))
+    print(f"run folder: {run_dir}", flush=True)
+
+    rows = []
+    for step in tqdm(range(1, args.bc_steps + 1), desc=f"bc {args.env}", unit="update", mininterval=1.0):
+        obs, actions, _, _ = teacher_buffer.sample(args.batch_size)
+        loss = F.mse_loss(agent.actor(obs), actions)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        if step % args.eval_freq == 0 or step == args.bc_steps:
+            if not np.isfinite(loss.item()):
+                raise ConfigError(f"BC loss is {loss.item()} at step {step}")
+            returns = [rollout(eval_env, agent.act)["episodic_return"] for _ in range(args.eval_episodes)]
+            rows.append({k: float("nan") for k in CSV_COLUMNS} | {
+                "global_step": 0, "updates": step, "eval_return": np.mean(returns),
+                "eval_return_std": np.std(returns), "teacher_threshold": teacher_buffer.threshold,
+                "teacher_episodes": teacher_buffer.num_episodes, "alpha": 1.0, "actor_loss": loss.item()})
+            plumbing.write_csv(os.path.join(run_dir, "progress.csv"), CSV_COLUMNS, rows)
+    if args.save_model:
+        save_model(run_dir, agent, None, args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(plumbing.run_main("bc.py", train, parse_args()))

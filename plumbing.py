@@ -1,0 +1,240 @@
+"""What every training script here needs around its loop, in one place.
+
+sail.py, bc.py and make_demos.py use it for: one-line errors on bad input, a run folder with
+its config.json, the progress CSV, atomic writes, checkpoints (a dict of state_dicts, loaded
+with torch's weights-only unpickler), --resume, and a clean stop on Ctrl-C or SIGTERM.
+None of it is reinforcement learning; it is here so that the scripts can be about that.
+"""
+
+import argparse
+import csv
+import io
+import json
+import os
+import shlex
+import signal
+import sys
+import time
+
+import numpy as np
+import torch
+
+
+class ConfigError(Exception):
+    """Bad user input (env id, demo file, flag value, run folder): printed as one line."""
+
+
+def first_line(error):
+    """An exception as one line of text, for one-line error messages."""
+    return (str(error).strip().splitlines() or [type(error).__name__])[0]
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse that reports a bad flag as one line (no usage block) and exits with code 2."""
+
+    def error(self, message):
+        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        sys.exit(2)
+
+    def given_flags(self, argv):
+        """The names of the flags written on the command line, whatever their values.
+
+        Parsing into a namespace that already holds every name stops argparse from filling in
+        defaults, so a flag given with its default value still counts as given.
+        """
+        unset = object()
+        namespace = argparse.Namespace(**{name: unset for name in vars(self.parse_args([]))})
+        self.parse_known_args(argv, namespace=namespace)
+        return {name for name, value in vars(namespace).items() if value is not unset}
+
+
+def run_main(prog, main, argv=None):
+    """Calls main(argv) and turns the ways a run can stop into exit codes, never a traceback:
+    bad input is one line and exit 1, Ctrl-C outside the training loop exit 130, and a reader
+    that closed stdout early (`| head`) exit 1, quietly."""
+    try:
+        code = main(argv)
+        sys.stdout.flush()  # here, so that a reader gone early is caught below, not at exit
+        return code
+    except ConfigError as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # stdout to /dev/null, so that the exit's own flush cannot fail again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
+
+
+# ---------------------------------------------------------------------------------------------
+# Files: atomic writes, the run folder, the CSV
+# ---------------------------------------------------------------------------------------------
+
+def atomic_write(path, write):
+    """Calls write(file) on a temp file beside `path`, then renames it to `path`: an interrupted
+    write never leaves a broken file behind."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = f"{path}.tmp{os.getpid()}"
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):  # the write failed: leave no temp file behind
+            os.remove(tmp)
+
+
+def check_writable(path):
+    """ConfigError unless a file can be created at `path` (checked before any training)."""
+    folder = os.path.dirname(os.path.abspath(path))
+    try:
+        os.makedirs(folder, exist_ok=True)
+        probe = os.path.join(folder, f".write-test{os.getpid()}")
+        open(probe, "w").close()
+        os.remove(probe)
+    except OSError as e:
+        raise ConfigError(f"cannot write {path}: {e.strerror}") from None
+
+
+def make_run_dir(output_dir, name, config):
+    """Creates output_dir/name with config.json (every flag and the exact command)."""
+    run_dir = os.path.join(output_dir, name)
+    if os.path.exists(run_dir):
+        raise ConfigError(f"run folder {run_dir} already exists (use --resume {run_dir} to continue it)")
+    check_writable(os.path.join(run_dir, "config.json"))
+    config = dict(config, command=shlex.join([sys.executable, *sys.argv]))
+    atomic_write(os.path.join(run_dir, "config.json"), lambda f: f.write(json.dumps(config, indent=2).encode()))
+    return run_dir
+
+
+def run_name(env_id, method, seed):
+    return f"{env_id}__{method}__{seed}__{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def write_csv(path, columns, rows):
+    """Writes all rows (dicts) to `path` atomically; floats rounded to 4 decimals."""
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=columns)
+    writer.writeheader()
+    writer.writerows([{k: round(float(v), 4) if isinstance(v, (float, np.floating)) else v
+                       for k, v in row.items()} for row in rows])
+    atomic_write(path, lambda f: f.write(text.getvalue().encode()))
+
+
+# ---------------------------------------------------------------------------------------------
+# Checkpoints: plain types and tensors only, so that loading runs no code from the file
+# ---------------------------------------------------------------------------------------------
+
+def _to_safe(x):
+    """numpy arrays and scalars -> tensors and Python numbers (marked, to be turned back)."""
+    if isinstance(x, np.ndarray):
+        return {"__ndarray__": torch.from_numpy(np.ascontiguousarray(x)).clone()}
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, dict):
+        return {k: _to_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_to_safe(v) for v in x)
+    return x
+
+
+def _from_safe(x):
+    if isinstance(x, dict):
+        if set(x) == {"__ndarray__"}:
+            return x["__ndarray__"].numpy()
+        return {k: _from_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_from_safe(v) for v in x)
+    return x
+
+
+def save_checkpoint(path, state):
+    """Writes a dict of state_dicts, tensors, numpy arrays and plain values atomically."""
+    atomic_write(path, lambda f: torch.save(_to_safe(state), f))
+
+
+def load_checkpoint(path, map_location=None):
+    """Reads a file written by save_checkpoint with torch's weights-only unpickler: a file that
+    would run code when unpickled is refused (ConfigError), as is any unreadable one."""
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:
+        raise ConfigError(f"cannot read {path}: {first_line(e)}") from None
+    return _from_safe(state)
+
+
+def rng_state(rng):
+    """Every RNG a run draws from: numpy's Generator, torch's CPU (and CUDA) generators."""
+    return {"numpy": rng.bit_generator.state, "torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
+
+
+def set_rng_state(rng, state):
+    rng.bit_generator.state = state["numpy"]
+    torch.set_rng_state(state["torch"])
+    if state["cuda"] and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+# ---------------------------------------------------------------------------------------------
+# --resume and stopping
+# ---------------------------------------------------------------------------------------------
+
+def read_config(run_dir):
+    """A run folder's config.json as a namespace of its flags."""
+    path = os.path.join(run_dir, "config.json")
+    try:
+        with open(path) as f:
+            return argparse.Namespace(**json.load(f))
+    except (OSError, ValueError, TypeError) as e:
+        raise ConfigError(f"cannot read {path}: {first_line(e)}") from None
+
+
+def resume_config(run_dir, args, given, changeable):
+    """The saved run's flags, with the `changeable` ones taken anew where given on the command
+    line. Any other flag given is a ConfigError: a resumed run cannot honour it."""
+    path = os.path.join(run_dir, "config.json")
+    if not os.path.isfile(path):
+        raise ConfigError(f"--resume {run_dir}: no config.json there (not a run folder)")
+    if not os.path.isfile(os.path.join(run_dir, "checkpoint.pt")):
+        raise ConfigError(f"--resume {run_dir}: no checkpoint.pt there (the run stopped before its first "
+                          "checkpoint); start it again")
+    ignored = sorted(given - set(changeable) - {"resume"})
+    if ignored:
+        flags = ", ".join("--" + name.replace("_", "-") for name in ignored)
+        allowed = ", ".join("--" + name.replace("_", "-") for name in changeable)
+        raise ConfigError(f"--resume keeps the run's saved flags; {flags} cannot change (only {allowed} can)")
+    saved = {k: v for k, v in vars(read_config(run_dir)).items() if k in vars(args)}  # the command line, the given set: not flags
+    for name in changeable:
+        if name in given:
+            saved[name] = getattr(args, name)
+    return argparse.Namespace(**(vars(args) | saved | {"resume": run_dir}))
+
+
+class StopRequest:
+    """Turns SIGINT (Ctrl-C) and SIGTERM (kill, timeout, job schedulers) into a flag that the
+    training loop reads once per step, so that it stops between steps and checkpoints.
+
+        with StopRequest() as stop:
+            while ... and not stop.requested: ...
+    """
+
+    def __enter__(self):
+        self.requested, self.signal = False, None
+        self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def _handle(self, signum, frame):
+        self.requested, self.signal = True, signum
+
+    def __exit__(self, *exc):
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+
+    @property
+    def exit_code(self):
+        """The shell's convention: 128 + the signal's number (130 for Ctrl-C, 143 for SIGTERM)."""
+        return 128 + self.signal if self.requested else 0
