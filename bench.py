@@ -300,11 +300,15 @@ def peak_memory_gb(args):
 
 
 def cpu_model():
-    """The CPU's model name, as the kernel reports it (speed figures mean little without it)."""
+    """The CPU as the kernel reports it: model name, family/model numbers and AVX-512 (a VM may
+    show only "AMD EPYC"; the numbers tell its generations apart). Speed means little without it."""
     try:
         with open("/proc/cpuinfo") as f:
-            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
+            info = dict(line.split(":", 1) for line in f.read().split("\n\n")[0].splitlines() if ":" in line)
+        info = {k.strip(): v.strip() for k, v in info.items()}
+        avx512 = "AVX-512" if "avx512f" in info.get("flags", "").split() else "no AVX-512"
+        return f"{info['model name']} (family {info['cpu family']}, model {info['model']}, {avx512})"
+    except (OSError, KeyError):
         return platform.processor() or platform.machine()
 
 

@@ -76,7 +76,7 @@ class TeacherBuffer:
 
     Promotion rule (Algorithm 1): a finished episode whose episodic return is strictly higher
     than the threshold C = min return over the kept episodes joins the buffer whole.
-    Capacity is in transitions (REFERENCE: 1e4, the authors' code). When a promotion overflows
+    Capacity is in transitions (1e4 in the authors' released code). When a promotion overflows
     it, the lowest-return episodes leave first (never the one just added), so the buffer keeps
     the best episodes seen and the threshold never decreases. The authors' FIFO ring would
     instead drop the oldest data, which may be better than what stays.
@@ -189,6 +189,8 @@ def load_demos(path, env_id, obs_dim, act_dim, num_demos=None):
     Each episode: observations, actions, next_observations, rewards (raw float32 arrays),
     terminated (bool), episodic_return (float). Any problem raises ConfigError naming the file.
     """
+    if os.path.isdir(path):
+        raise ConfigError(f"demo file {path} is a folder; give the .npz file")
     if not os.path.isfile(path):
         raise ConfigError(f"demo file {path} not found (make one with make_demos.py --env {env_id})")
     try:
@@ -214,7 +216,8 @@ def load_demos(path, env_id, obs_dim, act_dim, num_demos=None):
                                                     "terminations", "truncations"))
     if not same_rows or lengths.sum() != n or (lengths <= 0).any() or len(data["episode_returns"]) != len(lengths):
         raise ConfigError(f"demo file {path} is inconsistent: arrays and episode_lengths disagree")
-    if not all(np.isfinite(data[k]).all() for k in ("observations", "actions", "next_observations", "rewards")):
+    if not all(np.isfinite(data[k]).all() for k in ("observations", "actions", "next_observations", "rewards",
+                                                    "episode_returns")):
         raise ConfigError(f"demo file {path} holds NaN or inf values")
     num_demos = len(lengths) if num_demos is None else num_demos
     if num_demos > len(lengths):

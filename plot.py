@@ -1,7 +1,7 @@
 """Learning curves and a results table from run folders (each with config.json and progress.csv).
 
-    python plot.py                                   # every run under results/runs/
-    python plot.py runs/Hopper-v5__sail__1__* --output-dir /tmp/plots
+    python plot.py                                   # every run under results/runs/, into results/
+    python plot.py runs/Hopper-v5__sail__1__*        # these runs, into plots/ (or --output-dir)
 
 For each env: evaluation return against env steps, the mean over seeds of each method as a
 line and the range over seeds as a band, the teacher's return as a dashed line; BC (no env
@@ -25,7 +25,7 @@ from collections import defaultdict
 import numpy as np
 
 from buffers import default_demo_path
-from plumbing import ArgumentParser
+from plumbing import ArgumentParser, atomic_write
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -33,13 +33,16 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 def parse_args():
     p = ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="*", help="run folders (default: results/runs/*)")
-    p.add_argument("--output-dir", default=os.path.join(HERE, "results"), help="where the PNGs and results.md go")
+    p.add_argument("--output-dir", help="where the PNGs and results.md go (default: results/ for the committed "
+                   "runs, plots/ for run folders given)")
     p.add_argument("--last", type=int, default=5, help="evaluations averaged into the final return")
     p.add_argument("--early-steps", type=int, default=100_000,
                    help="the early phase: the table's last column averages the evaluations up to here")
     p.add_argument("--min-steps", type=int, default=0,
                    help="leave out runs (not BC) with fewer env steps, e.g. those still running")
     args = p.parse_args()
+    # the committed figures and table are rewritten only from the committed runs
+    args.output_dir = args.output_dir or ("plots" if args.runs else os.path.join(HERE, "results"))
     args.runs = args.runs or sorted(glob.glob(os.path.join(HERE, "results", "runs", "*")))
     if not args.runs:
         p.error("no run folders given and none under results/runs/")
@@ -169,10 +172,9 @@ def main():
     if left_out:
         lines.append(f"Left out (fewer than {args.min_steps} env steps): {', '.join(left_out)}.")
     path = os.path.join(args.output_dir, "results.md")
-    with open(path + ".tmp", "w") as f:
-        f.write("\n".join(lines))
-    os.replace(path + ".tmp", path)
+    atomic_write(path, lambda f: f.write("\n".join(lines).encode()))
     print("\n".join(lines))
+    print(f"\nwrote {path} and the figures beside it", file=sys.stderr)
 
 
 if __name__ == "__main__":

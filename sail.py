@@ -21,11 +21,16 @@ flags (--fixed-alpha, --no-lfd, --no-adaptation, --on-policy-disc); DAC and TD3 
 reward are presets of the same loop (--algo dac, td3); behaviour cloning is bc.py.
 """
 
+import signal
+import sys
+
+if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, no traceback
+    signal.signal(signal.SIGINT, lambda signum, frame: sys.exit(print("sail.py: interrupted", file=sys.stderr) or 130))
+
 import argparse
 import dataclasses
 import math
 import os
-import sys
 import time
 
 import numpy as np
@@ -311,41 +316,49 @@ def train(args):
     networks = {"agent": agent, "disc": disc, "disc_optimizer": disc_optimizer, "self_buffer": self_buffer,
                 "teacher_buffer": teacher_buffer}
 
-    if args.resume:
-        run_dir = args.resume
-        saved = plumbing.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), map_location=device)
-        s = LoopState(**saved["loop"])
-        for name, part in networks.items():
-            part.load_state_dict(saved[name])
-        set_env_state(env, saved["env"])
-        set_env_state(eval_env, saved["eval_env"])
-        plumbing.set_rng_state(rng, saved["rng"])
-        obs = saved["obs"]
-    else:
-        kernels = cpu_kernels.choose(args.kernels, [agent.actor.net, agent.critic.q1.net, disc.net],
-                                     args.batch_size, device)
-        s = LoopState(alpha=0.0 if args.no_lfd else args.alpha, kernels=kernels)
-        obs, _ = env.reset()
-        config = {k: v for k, v in vars(args).items() if k != "given"}
-        run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(
-            args.env, args.algo, args.seed), config)
-    cpu_kernels.apply(s.kernels, [*agent.networks(), disc])
-
-    def save_checkpoint():
-        state = {name: part.state_dict() for name, part in networks.items()}
-        plumbing.save_checkpoint(os.path.join(run_dir, "checkpoint.pt"), state | {
-            "loop": dataclasses.asdict(s), "env": get_env_state(env), "eval_env": get_env_state(eval_env),
-            "rng": plumbing.rng_state(rng), "obs": obs})
-
-    print(f"run folder: {run_dir}\nCPU kernels: {s.kernels}", flush=True)
-    if use_demos:
-        print(f"teacher: {teacher_buffer.num_episodes} episodes, return {np.mean(teacher_buffer.returns):.1f}",
-              flush=True)
-    stats = {}  # the latest losses, logged at each evaluation
-    bar = tqdm(total=args.total_timesteps, initial=s.global_step, desc=f"{args.algo} {args.env}",
-               unit="step", dynamic_ncols=True, mininterval=1.0)
-    clock, last_row = time.perf_counter(), (s.global_step, s.train_time)
+    # From here on Ctrl-C and SIGTERM only set stop.requested: the loop then stops between two
+    # steps and checkpoints (during setup, before its first step), and the run can be resumed.
     with plumbing.StopRequest() as stop:
+        if args.resume:
+            run_dir = args.resume
+            saved = plumbing.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), map_location=device)
+            s = LoopState(**saved["loop"])
+            for name, part in networks.items():
+                part.load_state_dict(saved[name])
+            set_env_state(env, saved["env"])
+            set_env_state(eval_env, saved["eval_env"])
+            plumbing.set_rng_state(rng, saved["rng"])
+            obs = saved["obs"]
+        else:
+            kernels = cpu_kernels.choose(args.kernels, [agent.actor.net, agent.critic.q1.net, disc.net],
+                                         args.batch_size, device)
+            s = LoopState(alpha=0.0 if args.no_lfd else args.alpha, kernels=kernels)
+            obs, _ = env.reset()
+            config = {k: v for k, v in vars(args).items() if k != "given"}
+            run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(
+                args.env, args.algo, args.seed), config)
+        cpu_kernels.apply(s.kernels, [*agent.networks(), disc])
+
+        def count_time():  # training seconds since the last call (evaluations are not counted)
+            nonlocal clock
+            now = time.perf_counter()
+            s.train_time, clock = s.train_time + now - clock, now
+
+        def save_checkpoint():
+            count_time()  # so that a run resumed from this checkpoint loses no training time
+            state = {name: part.state_dict() for name, part in networks.items()}
+            plumbing.save_checkpoint(os.path.join(run_dir, "checkpoint.pt"), state | {
+                "loop": dataclasses.asdict(s), "env": get_env_state(env), "eval_env": get_env_state(eval_env),
+                "rng": plumbing.rng_state(rng), "obs": obs})
+
+        print(f"run folder: {run_dir}\nCPU kernels: {s.kernels}", flush=True)
+        if use_demos:
+            print(f"teacher: {teacher_buffer.num_episodes} episodes, return {np.mean(teacher_buffer.returns):.1f}",
+                  flush=True)
+        stats = {}  # the latest losses, logged at each evaluation
+        bar = tqdm(total=args.total_timesteps, initial=s.global_step, desc=f"{args.algo} {args.env}",
+                   unit="step", dynamic_ncols=True, mininterval=1.0)
+        clock, last_row = time.perf_counter(), (s.global_step, s.train_time)
         while s.global_step < args.total_timesteps and not stop.requested:
             s.global_step += 1
 
@@ -394,7 +407,7 @@ def train(args):
 
             # 5. evaluation of the deterministic policy, the CSV row, a checkpoint
             if s.global_step % args.eval_freq == 0:
-                s.train_time += time.perf_counter() - clock
+                count_time()
                 returns = [rollout(eval_env, agent.act)["episodic_return"] for _ in range(args.eval_episodes)]
                 row = {"global_step": s.global_step, "eval_return": np.mean(returns), "eval_return_std": np.std(returns),
                        "train_episodic_return": s.train_episodic_return,
@@ -408,12 +421,11 @@ def train(args):
                 plumbing.write_csv(os.path.join(run_dir, "progress.csv"), CSV_COLUMNS, s.rows)
                 bar.set_postfix(eval=f"{row['eval_return']:.0f}", threshold=f"{row['teacher_threshold']:.0f}",
                                 alpha=s.alpha, refresh=False)
-                clock, last_row = time.perf_counter(), (s.global_step, s.train_time)
+                clock, last_row = time.perf_counter(), (s.global_step, s.train_time)  # the evaluation's time left out
             if s.global_step % args.checkpoint_freq == 0:
                 save_checkpoint()
             bar.update(1)
         bar.close()
-        s.train_time += time.perf_counter() - clock  # the time since the last row counts too
         save_checkpoint()
     if args.save_model:
         save_model(run_dir, agent, disc, args)

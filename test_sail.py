@@ -294,6 +294,14 @@ def test_each_bad_demo_file_gives_a_clear_error(tmp_path):
     np.savez(path, observations=np.zeros((3, 11)))
     with pytest.raises(ConfigError, match="lacks actions"):
         load_demos(path, "Hopper-v5", 11, 3)
+    save_demos(path, recorded_episodes(), "Hopper-v5")
+    data = dict(np.load(path))
+    data["episode_returns"][1] = np.nan  # the threshold would be nan: nothing could ever be promoted
+    np.savez(path, **data)
+    with pytest.raises(ConfigError, match="NaN"):
+        load_demos(path, "Hopper-v5", 11, 3)
+    with pytest.raises(ConfigError, match="is a folder"):
+        load_demos(str(tmp_path), "Hopper-v5", 11, 3)
 
 
 @pytest.mark.parametrize("env_id", sorted(SHIPPED))
@@ -445,6 +453,66 @@ def test_make_demos_unreadable_checkpoint_is_one_line(tmp_path):
     assert not (tmp_path / "out.npz").exists()
 
 
+def test_make_demos_checks_its_outputs_before_training_and_never_overwrites_without_force(tmp_path):
+    import make_demos
+    from buffers import default_demo_path
+    assert make_demos.parse_args(["--env", "Hopper-v5"]).output == default_demo_path("Hopper-v5")  # not cwd-relative
+    shipped = default_demo_path("Hopper-v5")
+    before = os.path.getmtime(shipped)
+    assert_one_line_error(run_script("make_demos.py", "--env", "Hopper-v5"))  # the shipped file exists
+    assert os.path.getmtime(shipped) == before
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    for flag in ("--output", "--checkpoint"):
+        other = "--checkpoint" if flag == "--output" else "--output"
+        proc = run_script("make_demos.py", "--env", "Hopper-v5", flag, str(blocker / "x"), other, str(tmp_path / "y"),
+                          "--learning-starts", "10", "--total-timesteps", "100000000", timeout=60)
+        assert_one_line_error(proc)  # at once: a training of 1e8 steps would not end within the timeout
+        assert "cannot write" in proc.stderr
+
+
+def test_make_demos_stops_on_sigterm_with_a_checkpoint_that_continues(tmp_path):
+    import signal
+    import time
+    checkpoint = tmp_path / "teacher.pt"
+    command = [sys.executable, "make_demos.py", "--env", "Hopper-v5", "--total-timesteps", "100000000",
+               "--learning-starts", "100", "--eval-freq", "1000000", "--hidden", "16", "16",
+               "--checkpoint", str(checkpoint), "--checkpoint-freq", "1000000", "--output", str(tmp_path / "d.npz")]
+    proc = subprocess.Popen(command, cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(6)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and "Traceback" not in err, err[-3000:]
+    step = torch.load(checkpoint, weights_only=True)["global_step"]
+    assert step > 0 and f"stopped at step {step}" in out
+    proc = subprocess.Popen(command, cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(6)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and f"resumed from {checkpoint} at step {step}" in out, err[-3000:]
+    assert torch.load(checkpoint, weights_only=True)["global_step"] >= step
+
+
+def test_bernoulli_entropy_is_the_closed_form():
+    logits = torch.linspace(-30, 30, 601)
+    closed_form = F.softplus(-logits) + (1 - torch.sigmoid(logits)) * logits
+    torch.testing.assert_close(torch.distributions.Bernoulli(logits=logits).entropy(), closed_form)
+
+
+def test_auto_kernels_choose_without_touching_the_run_rng_and_keep_the_networks_interchangeable():
+    from sail import Discriminator
+    torch.manual_seed(0)
+    disc = Discriminator(obs_dim=5, act_dim=2, hidden=[64, 64])
+    state = torch.get_rng_state()
+    assert cpu_kernels.choose("auto", [disc.net], 128, "cpu") in ("torch", "onednn")
+    assert torch.equal(torch.get_rng_state(), state)
+    fast = copy.deepcopy(disc)
+    cpu_kernels.apply("onednn" if cpu_kernels.AVAILABLE else "torch", [fast])
+    assert fast.state_dict().keys() == disc.state_dict().keys()
+    x = torch.randn(128, 7)
+    torch.testing.assert_close(fast(x), disc(x), rtol=1e-4, atol=1e-5)
+
+
 # ---------------------------------------------------------------------------------------------
 # sail.py
 # ---------------------------------------------------------------------------------------------
@@ -527,7 +595,7 @@ def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos
     rows = read_csv(run_dir)
     assert list(rows[0]) == CSV_COLUMNS
     assert all(np.isfinite(float(r["eval_return"])) for r in rows)
-    model = torch.load(run_dir / "model.pt", weights_only=False)
+    model = torch.load(run_dir / "model.pt", weights_only=True)
     assert set(model["actor"]) and model["env"] == "Hopper-v5"
     config = json.load(open(run_dir / "config.json"))
     if name == "bc":
@@ -549,7 +617,7 @@ def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos
     else:
         assert 0.0 < float(rows[-1]["disc_teacher"]) < 1.0
     if name == "dac":  # the agent acts with zero in the absorbing state, as the demos do
-        buffer = torch.load(run_dir / "checkpoint.pt", weights_only=False)["self_buffer"]["data"]
+        buffer = torch.load(run_dir / "checkpoint.pt", weights_only=True)["self_buffer"]["data"]
         absorbing = buffer[0][:, -1] == 1.0
         assert absorbing.sum() > 0 and (buffer[1][absorbing] == 0).all()
 
@@ -570,26 +638,76 @@ def test_promotion_switches_alpha_inside_the_loop(tmp_path, poor_hopper_demos):
     assert float(rows[-1]["teacher_threshold"]) > float(rows[0]["teacher_threshold"])
 
 
-def test_resume_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos):
-    # fixed kernels: `auto` times them in each process and may choose differently in the two runs
-    kernels = "onednn" if cpu_kernels.AVAILABLE else "torch"
-    common = ["sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--learning-starts", "500",
-              "--eval-freq", "250", "--disc-freq", "100", "--seed", "3", "--save-model", "--kernels", kernels, *TINY]
-    straight = run_script(*common, "--total-timesteps", "1500", "--output-dir", str(tmp_path), "--run-name", "a")
-    assert straight.returncode == 0, straight.stderr[-3000:]
-    first = run_script(*common, "--total-timesteps", "880", "--output-dir", str(tmp_path), "--run-name", "b")
-    assert first.returncode == 0, first.stderr[-3000:]
-    resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1500")
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
+# fixed kernels: `auto` times them in each process and may choose differently in two runs
+RESUME_FLAGS = ["--env", "Hopper-v5", "--learning-starts", "500", "--eval-freq", "250", "--disc-freq", "100",
+                "--seed", "3", "--save-model", "--kernels", "onednn" if cpu_kernels.AVAILABLE else "torch", *TINY]
+
+
+@pytest.fixture(scope="module")
+def straight_run(tmp_path_factory, poor_hopper_demos):
+    """A run of 1500 steps, never interrupted: what every interrupted and resumed one must equal."""
+    out = tmp_path_factory.mktemp("straight")
+    proc = run_script("sail.py", *RESUME_FLAGS, "--demos", poor_hopper_demos, "--total-timesteps", "1500",
+                      "--output-dir", str(out), "--run-name", "a")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out / "a"
+
+
+def assert_same_run(run_a, run_b):
     drop = ("steps_per_second", "time")
-    rows_a = [{k: v for k, v in r.items() if k not in drop} for r in read_csv(tmp_path / "a")]
-    rows_b = [{k: v for k, v in r.items() if k not in drop} for r in read_csv(tmp_path / "b")]
+    rows_a = [{k: v for k, v in r.items() if k not in drop} for r in read_csv(run_a)]
+    rows_b = [{k: v for k, v in r.items() if k not in drop} for r in read_csv(run_b)]
     assert len(rows_a) == 6 and rows_a == rows_b
-    model_a = torch.load(tmp_path / "a" / "model.pt", weights_only=False)
-    model_b = torch.load(tmp_path / "b" / "model.pt", weights_only=False)
+    model_a = torch.load(run_a / "model.pt", weights_only=True)
+    model_b = torch.load(run_b / "model.pt", weights_only=True)
     for key in ("actor", "critic", "discriminator"):
         for name, value in model_a[key].items():
             torch.testing.assert_close(value, model_b[key][name], rtol=0, atol=0)
+
+
+def test_resume_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos, straight_run):
+    first = run_script("sail.py", *RESUME_FLAGS, "--demos", poor_hopper_demos, "--total-timesteps", "880",
+                       "--output-dir", str(tmp_path), "--run-name", "b")
+    assert first.returncode == 0, first.stderr[-3000:]
+    # 1500 steps, and the default thread count given explicitly: both must be honoured
+    resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1500", "--threads", "2")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert_same_run(straight_run, tmp_path / "b")
+
+
+def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_result(tmp_path, poor_hopper_demos, straight_run):
+    """SIGKILL leaves no chance to save: the run must go on from its last periodic checkpoint,
+    whether it was killed between checkpoints or while writing one (atomic writes)."""
+    import time
+    run_dir = tmp_path / "k"
+    command = [sys.executable, "sail.py", *RESUME_FLAGS, "--demos", poor_hopper_demos, "--total-timesteps", "1500",
+               "--checkpoint-freq", "50", "--output-dir", str(tmp_path), "--run-name", "k"]
+    kills = 0
+    for moment in ("after the first checkpoint", "while a checkpoint is written", "later"):
+        proc = subprocess.Popen(command, cwd=HERE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        # a checkpoint's write lasts milliseconds: if the polling misses every one for 5 s, kill anyway
+        deadline = time.time() + (5 if moment == "while a checkpoint is written" and kills else 120)
+        checkpoint = run_dir / "checkpoint.pt"
+        start_mtime = checkpoint.stat().st_mtime_ns if checkpoint.exists() else 0
+        while time.time() < deadline and proc.poll() is None:
+            if moment == "while a checkpoint is written":
+                if any(p.name.startswith("checkpoint.pt.tmp") for p in run_dir.iterdir()):
+                    break
+            elif checkpoint.exists() and checkpoint.stat().st_mtime_ns != start_mtime:
+                if moment == "later":
+                    time.sleep(1.0)
+                break
+            time.sleep(0.001)
+        if proc.poll() is None:
+            proc.kill()
+            kills += 1
+        proc.wait()
+        command = [sys.executable, "sail.py", "--resume", str(run_dir)]
+    assert kills >= 2  # the run was really cut short (it needs far longer than the waits above)
+    finished = run_script(*command[1:])
+    assert finished.returncode == 0, finished.stderr[-3000:]
+    assert int(read_csv(run_dir)[-1]["global_step"]) == 1500
+    assert_same_run(straight_run, run_dir)
 
 
 def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, poor_hopper_demos):
@@ -628,6 +746,10 @@ def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos):
     assert_one_line_error(run_script("sail.py", "--alpha", "1.5", *out))
     assert_one_line_error(run_script("sail.py", "--reward", "env", *out))  # env reward with teacher batches
     assert_one_line_error(run_script("sail.py", "--resume", str(tmp_path / "nothing")))
+    assert_one_line_error(run_script("sail.py", "--env", "nosuchmodule:Foo-v0", *out))
+    assert_one_line_error(run_script("sail.py", "--env", "Hopper-v5", "--demos", str(tmp_path), *out))
+    assert_one_line_error(run_script("sail.py", "--hidden", "0", *out))
+    assert_one_line_error(run_script("sail.py", "--eval-freq", "5000", "--total-timesteps", "1000", *out))
     assert not os.path.exists(tmp_path / "runs")  # nothing was started
     blocker = tmp_path / "a-file"
     blocker.write_text("")
@@ -672,7 +794,10 @@ def test_sail_surpasses_a_poor_teacher_and_the_no_adaptation_ablation_does_not(t
     assert int(read_csv(tmp_path / "sail")[-1]["promotions"]) > 0
 
 
-def test_ctrl_c_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path, poor_hopper_demos):
+@pytest.mark.parametrize("signame, code", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_ctrl_c_or_sigterm_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path, poor_hopper_demos, signame, code):
+    """Ctrl-C, kill, timeout and job schedulers all stop a run the same way: a final checkpoint,
+    the CSV intact, the shell's exit code, and --resume goes on from there."""
     import signal
     import time
     run_dir = tmp_path / "run"
@@ -683,17 +808,71 @@ def test_ctrl_c_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path, poor_hopp
     deadline = time.time() + 120
     while not (run_dir / "progress.csv").exists() and time.time() < deadline:
         time.sleep(0.2)
-    proc.send_signal(signal.SIGINT)
+    time.sleep(0.3)  # some steps past the evaluation, whose time must be kept too
+    proc.send_signal(getattr(signal, signame))
     out, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err[-3000:]
+    assert proc.returncode == code, err[-3000:]
     assert "Traceback" not in err and "--resume" in out
     rows = read_csv(run_dir)
     assert rows and list(rows[0]) == CSV_COLUMNS
-    steps = torch.load(run_dir / "checkpoint.pt", weights_only=False)["loop"]["global_step"]
-    assert steps >= int(rows[-1]["global_step"])
+    loop = torch.load(run_dir / "checkpoint.pt", weights_only=True)["loop"]
+    steps = loop["global_step"]
+    assert steps > int(rows[-1]["global_step"])
+    assert loop["train_time"] > float(rows[-1]["time"])  # the seconds after the last row are not lost
+    # a flag that a resumed run cannot honour is one line, also when given with its default value
+    for flag in (["--lr", "3e-4"], ["--env", "Walker2d-v5"]):
+        assert_one_line_error(run_script("sail.py", "--resume", str(run_dir), *flag))
     resumed = run_script("sail.py", "--resume", str(run_dir), "--total-timesteps", str(steps + 300))
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert int(read_csv(run_dir)[-1]["global_step"]) > steps
+
+
+def test_ctrl_c_while_the_libraries_load_is_one_line_and_starts_nothing(tmp_path, poor_hopper_demos):
+    import signal
+    import time
+    proc = subprocess.Popen([sys.executable, "sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos,
+                             "--output-dir", str(tmp_path / "runs")], cwd=HERE, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and err.strip() == "sail.py: interrupted", err
+    assert not (tmp_path / "runs").exists()
+
+
+def test_resume_takes_flags_given_with_their_default_values(tmp_path):
+    """`--resume RUN --total-timesteps 1000000` extends a 600-step run to 1M steps although
+    1000000 is the parser's default: what counts is that the flag was written."""
+    import plumbing
+    import sail
+    run = tmp_path / "run"
+    run.mkdir()
+    saved = vars(sail.parse_args(["--total-timesteps", "600", "--eval-freq", "200", "--threads", "1"]))
+    (run / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k != "given"}))
+    (run / "checkpoint.pt").write_bytes(b"")
+    args = sail.parse_args(["--resume", str(run), "--total-timesteps", "1000000", "--threads", "2"])
+    assert args.given == {"resume", "total_timesteps", "threads"}
+    resumed = plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE)
+    assert (resumed.total_timesteps, resumed.threads, resumed.eval_freq) == (1_000_000, 2, 200)
+
+
+def test_loading_refuses_a_file_that_would_run_code(tmp_path, poor_hopper_demos, straight_run):
+    """Checkpoints and model files are read with torch's weights-only unpickler: a shared file
+    whose unpickling would run a command is refused with one line, and the command never runs."""
+    import shutil
+    marker = tmp_path / "code-ran"
+
+    class Payload:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+
+    run = tmp_path / "run"
+    shutil.copytree(straight_run, run)
+    for name in ("checkpoint.pt", "model.pt"):
+        torch.save({"loop": Payload(), "actor": Payload()}, run / name)
+    assert_one_line_error(run_script("sail.py", "--resume", str(run)))
+    assert_one_line_error(run_script("sail.py", "--evaluate", str(run)))
+    assert not marker.exists()
 
 
 def test_a_diverging_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path, poor_hopper_demos):
@@ -703,7 +882,7 @@ def test_a_diverging_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_p
                       "--output-dir", str(tmp_path), "--run-name", "run", *TINY)
     assert_one_line_error(proc)
     assert "non-finite loss" in proc.stderr
-    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
     assert all(torch.isfinite(p).all() for p in state["agent"]["critic"].values())
 
 
@@ -727,9 +906,14 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
             writer.writeheader()
             writer.writerows(rows)
         runs.append(str(run))
-    proc = run_script("plot.py", *runs, "--output-dir", str(tmp_path / "out"), "--early-steps", "30000")
+    committed = open(os.path.join(HERE, "results", "results.md")).read()
+    # run folders given and no --output-dir: plots/ in the working directory, never results/
+    proc = subprocess.run([sys.executable, os.path.join(HERE, "plot.py"), *runs, "--early-steps", "30000"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    table = (tmp_path / "out" / "results.md").read_text()
+    assert f"wrote {os.path.join('plots', 'results.md')}" in proc.stderr
+    assert open(os.path.join(HERE, "results", "results.md")).read() == committed
+    table = (tmp_path / "plots" / "results.md").read_text()
     teacher = float(np.load(os.path.join(HERE, "demos", "Hopper-v5.npz"))["episode_returns"][0])
     assert f"(teacher {teacher:.0f})" in table
     # final = mean of the last 5 evaluations: 1600 and 500, so 1050 +- 550 over the seeds

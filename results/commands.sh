@@ -25,6 +25,9 @@ rows = list(csv.DictReader(open(sys.argv[1] + "/progress.csv")))
 sys.exit(0 if rows and float(rows[-1]["global_step"]) >= int(sys.argv[2]) else 1)
 PY
     python sail.py --resume "$dir" --total-timesteps "$STEPS" --threads 1 > "$dir.log" 2>&1
+  elif [ "$1" = "--env" ] && [ "$3" = "--algo" ] && [ "$4" = "bc" ]; then  # BC: bc.py, no env steps
+    rm -rf "$dir"
+    python bc.py --env "$2" "${@:5}" --threads 1 --output-dir "$RUNS" --run-name "$name" > "$dir.log" 2>&1
   else
     rm -rf "$dir"
     python sail.py "$@" --total-timesteps "$STEPS" --threads 1 --checkpoint-freq 10000 \
