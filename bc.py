@@ -24,10 +24,11 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 import plumbing
-from buffers import TeacherBuffer, default_demo_path, load_demos
-from envs import add_features, make_env, rollout
+from buffers import default_demo_path, load_teacher_buffer
+from envs import make_env, rollout
 from plumbing import ConfigError
-from sail import CSV_COLUMNS, save_model
+from evaluate import save_model
+from sail import CSV_COLUMNS
 from td3 import TD3, make_adam
 
 
@@ -36,25 +37,20 @@ def parse_args(argv=None):
     p.add_argument("--env", default="Walker2d-v5", help="gymnasium env id")
     p.add_argument("--seed", type=int, default=1, help="seed of the eval env, numpy and torch")
     p.add_argument("--demos", help="demo file (default: demos/<env>.npz)")
-    p.add_argument("--num-demos", type=int, default=1, help="teacher episodes used from the demo file")
-    p.add_argument("--bc-steps", type=int, default=20_000, help="gradient steps")
-    p.add_argument("--batch-size", type=int, default=256, help="teacher transitions per gradient step")
-    p.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate")
-    p.add_argument("--hidden", type=int, nargs="+", default=[256, 256], help="actor hidden sizes")
+    p.add_argument("--num-demos", type=plumbing.positive_int, default=1, help="teacher episodes used from the demo file")
+    p.add_argument("--bc-steps", type=plumbing.positive_int, default=20_000, help="gradient steps")
+    p.add_argument("--batch-size", type=plumbing.positive_int, default=256, help="teacher transitions per gradient step")
+    p.add_argument("--lr", type=plumbing.non_negative_float, default=3e-4, help="Adam learning rate")
+    p.add_argument("--hidden", type=plumbing.positive_int, nargs="+", default=[256, 256], help="actor hidden sizes")
     p.add_argument("--time-feature", action=argparse.BooleanOptionalAction, default=True,
                    help="append 1 - t/T to obs (as SAIL's actor sees it)")
-    p.add_argument("--eval-freq", type=int, default=10_000, help="gradient steps between evaluations")
-    p.add_argument("--eval-episodes", type=int, default=5, help="episodes per evaluation")
-    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--eval-freq", type=plumbing.positive_int, default=10_000, help="gradient steps between evaluations")
+    p.add_argument("--eval-episodes", type=plumbing.positive_int, default=5, help="episodes per evaluation")
+    p.add_argument("--threads", type=plumbing.positive_int, default=2, help="torch CPU threads")
     p.add_argument("--output-dir", default="runs", help="parent folder of the run folder")
     p.add_argument("--run-name", help="run folder name (default: <env>__bc__<seed>__<time>)")
     p.add_argument("--save-model", action="store_true", help="save the actor to model.pt at the end")
     args = p.parse_args(argv)
-    for name in ("num_demos", "bc_steps", "batch_size", "eval_freq", "eval_episodes", "threads"):
-        if getattr(args, name) <= 0:
-            p.error(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
-    if min(args.hidden) <= 0 or args.lr < 0:
-        p.error("--hidden sizes must be positive and --lr >= 0")
     args.algo, args.absorbing = "bc", False  # what plot.py and --evaluate read from config.json
     return args
 
@@ -64,11 +60,8 @@ def train(args):
     torch.manual_seed(args.seed)
     eval_env = make_env(args.env, args.seed + 100, time_feature=args.time_feature)
     obs_dim, act_dim = eval_env.observation_space.shape[0], eval_env.action_space.shape[0]
-    teacher_buffer = TeacherBuffer(10**9)
-    for episode in load_demos(args.demos or default_demo_path(args.env), args.env,
-                              obs_dim - int(args.time_feature), act_dim, args.num_demos):
-        teacher_buffer.add_episode(episode["episodic_return"],
-                                   *add_features(episode, eval_env.max_episode_steps, args.time_feature))
+    teacher_buffer = load_teacher_buffer(args.demos or default_demo_path(args.env), args.env, eval_env, args.num_demos,
+                                         10**9, args.time_feature, absorbing=False)
     agent = TD3(obs_dim, act_dim, eval_env.action_space.low, eval_env.action_space.high, hidden=args.hidden)
     optimizer = make_adam(agent.actor.parameters(), args.lr)
     run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(args.env, "bc", args.seed),

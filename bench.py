@@ -38,23 +38,20 @@ import sail
 import td3
 from buffers import ReplayBuffer, TeacherBuffer
 from envs import make_env
-from plumbing import ArgumentParser
+from plumbing import ArgumentParser, positive_int
 
 
 def parse_args():
     p = ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="Walker2d-v5", help="env of the end-to-end part and the sizes")
-    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
-    p.add_argument("--hidden", type=int, default=256, help="hidden size of both layers of every network")
-    p.add_argument("--batch-size", type=int, default=256, help="batch size")
-    p.add_argument("--updates", type=int, default=1000, help="timed updates of part 2, per loop")
-    p.add_argument("--env-steps", type=int, default=3000, help="timed env steps of part 3, per loop")
-    p.add_argument("--warmup", type=int, default=1000, help="random env steps before the timed ones")
+    p.add_argument("--threads", type=positive_int, default=2, help="torch CPU threads")
+    p.add_argument("--hidden", type=positive_int, default=256, help="hidden size of both layers of every network")
+    p.add_argument("--batch-size", type=positive_int, default=256, help="batch size")
+    p.add_argument("--updates", type=positive_int, default=1000, help="timed updates of part 2, per loop")
+    p.add_argument("--env-steps", type=positive_int, default=3000, help="timed env steps of part 3, per loop")
+    p.add_argument("--warmup", type=positive_int, default=1000, help="random env steps before the timed ones")
     p.add_argument("--skip-memory", action="store_true", help="skip part 4")
     args = p.parse_args()
-    for name in ("threads", "hidden", "batch_size", "updates", "env_steps", "warmup"):
-        if getattr(args, name) <= 0:
-            p.error(f"--{name.replace('_', '-')} must be positive")
     return args
 
 
@@ -281,10 +278,10 @@ for _ in range(100):
     sail.td3_update(agent, disc, teacher, buffer, 0.5, args)
 run_dir = sail.plumbing.make_run_dir(args.output_dir, "memory", {{}})
 state = {{"global_step": 10**6, "rows": [], "train_time": 0.0}}
-sail.plumbing.save_checkpoint(run_dir + "/checkpoint.pt", {{"agent": agent.state_dict(), "disc": disc.state_dict(),
-    "disc_optimizer": disc_optimizer.state_dict(), "self_buffer": buffer.state_dict(),
-    "teacher_buffer": teacher.state_dict(), "env": sail.get_env_state(env), "eval_env": sail.get_env_state(eval_env),
-    "loop": state, "rng": sail.plumbing.rng_state(np.random.default_rng(0)), "obs": env.reset()[0]}})
+sail.plumbing.save_checkpoint(run_dir + "/checkpoint.pt", {{"agent": agent, "disc": disc,
+    "disc_optimizer": disc_optimizer, "self_buffer": buffer, "teacher_buffer": teacher, "env": sail.EnvState(env),
+    "eval_env": sail.EnvState(eval_env), "rng": sail.plumbing.RNGs(np.random.default_rng(0))}},
+    loop=state, obs=env.reset()[0])
 print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2)
 """
 

@@ -11,6 +11,7 @@ import zipfile
 import numpy as np
 import torch
 
+from envs import add_features
 from plumbing import ConfigError, atomic_write
 
 DEMO_KEYS = ("observations", "actions", "next_observations", "rewards", "terminations",
@@ -131,6 +132,19 @@ class TeacherBuffer:
         self.capacity, self.episodes = state["capacity"], []
         for ret, data in state["episodes"]:
             self.add_episode(ret, *data)
+
+
+def load_teacher_buffer(path, env_id, env, num_demos, capacity, time_feature, absorbing):
+    """R_E from the first `num_demos` episodes of a demo file, with the same observation
+    features (time, absorbing state) that `env`'s wrappers add online."""
+    raw_obs_dim = env.observation_space.shape[0] - int(time_feature) - int(absorbing)  # as the files store them
+    teacher_buffer = TeacherBuffer(capacity)
+    for episode in load_demos(path, env_id, raw_obs_dim, env.action_space.shape[0], num_demos):
+        if len(episode["actions"]) > capacity:
+            raise ConfigError(f"--teacher-capacity {capacity} is smaller than a demo episode")
+        teacher_buffer.add_episode(episode["episodic_return"],
+                                   *add_features(episode, env.max_episode_steps, time_feature, absorbing))
+    return teacher_buffer
 
 
 def mixed_batch(teacher_buffer, self_buffer, batch_size, alpha):

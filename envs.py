@@ -227,6 +227,19 @@ def get_env_state(env):
     return state
 
 
+class EnvState:
+    """An env as a checkpoint part (plumbing.save_checkpoint): its exact state, mid-episode too."""
+
+    def __init__(self, env):
+        self.env = env
+
+    def state_dict(self):
+        return get_env_state(self.env)
+
+    def load_state_dict(self, state):
+        set_env_state(self.env, state)
+
+
 def set_env_state(env, state):
     layer = env
     for saved in state["wrappers"]:

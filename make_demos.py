@@ -28,7 +28,7 @@ import torch
 
 import plumbing
 from buffers import ReplayBuffer, default_demo_path, save_demos
-from envs import get_env_state, make_env, rollout, set_env_state
+from envs import EnvState, make_env, rollout
 from plumbing import ConfigError
 from td3 import TD3
 
@@ -48,26 +48,26 @@ def parse_args(argv=None):
     p.add_argument("--seed", type=int, default=0, help="seed of env, action space and torch")
     p.add_argument("--band", type=float, nargs=2, metavar=("LOW", "HIGH"),
                    help="teacher return band (default: the paper's quality for the five envs)")
-    p.add_argument("--num-episodes", type=int, default=10, help="episodes to record")
+    p.add_argument("--num-episodes", type=plumbing.positive_int, default=10, help="episodes to record")
     p.add_argument("--output", help="demo file (default: demos/<env>.npz beside this script)")
     p.add_argument("--force", action="store_true", help="replace an existing demo file")
-    p.add_argument("--total-timesteps", type=int, default=1_000_000,
+    p.add_argument("--total-timesteps", type=plumbing.positive_int, default=1_000_000,
                    help="give up if the band is not reached after this many env steps")
     p.add_argument("--learning-starts", type=int, default=10_000, help="uniformly random steps first")
-    p.add_argument("--eval-freq", type=int, default=5_000, help="env steps between evaluations")
-    p.add_argument("--eval-episodes", type=int, default=5, help="episodes per evaluation")
-    p.add_argument("--record-attempts", type=int, default=40,
+    p.add_argument("--eval-freq", type=plumbing.positive_int, default=5_000, help="env steps between evaluations")
+    p.add_argument("--eval-episodes", type=plumbing.positive_int, default=5, help="episodes per evaluation")
+    p.add_argument("--record-attempts", type=plumbing.positive_int, default=40,
                    help="episodes tried per recording round to find --num-episodes in the band")
     p.add_argument("--exploration-noise", type=float, default=0.1, help="std of Gaussian action noise")
-    p.add_argument("--batch-size", type=int, default=256, help="TD3 batch size")
-    p.add_argument("--hidden", type=int, nargs="+", default=[128, 128],
+    p.add_argument("--batch-size", type=plumbing.positive_int, default=256, help="TD3 batch size")
+    p.add_argument("--hidden", type=plumbing.positive_int, nargs="+", default=[128, 128],
                    help="hidden layer sizes (small: a mediocre teacher needs no more, and trains 3x faster)")
     p.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate of actor and critic")
     p.add_argument("--gamma", type=float, default=0.99, help="discount")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    p.add_argument("--threads", type=plumbing.positive_int, default=1, help="torch CPU threads")
     p.add_argument("--checkpoint", help="checkpoint file, written every --checkpoint-freq steps and "
                    "resumed from if it exists (default: none)")
-    p.add_argument("--checkpoint-freq", type=int, default=25_000, help="env steps between checkpoints")
+    p.add_argument("--checkpoint-freq", type=plumbing.positive_int, default=25_000, help="env steps between checkpoints")
     args = p.parse_args(argv)
     if args.band is None:
         if args.env not in BANDS:
@@ -79,10 +79,6 @@ def parse_args(argv=None):
         args.band = BANDS[args.env]
     if args.band[0] >= args.band[1]:
         p.error("--band needs LOW < HIGH")
-    for name in ("num_episodes", "total_timesteps", "eval_freq", "eval_episodes", "record_attempts",
-                 "batch_size", "threads", "checkpoint_freq"):
-        if getattr(args, name) <= 0:
-            p.error(f"--{name.replace('_', '-')} must be positive")
     if args.learning_starts < 0:
         p.error("--learning-starts must be >= 0")
     args.output = args.output or default_demo_path(args.env)
@@ -109,21 +105,15 @@ def train(args):
 
     obs, _ = env.reset()
     first_step = 1
+    parts = {"agent": agent, "buffer": buffer, "env": EnvState(env), "eval_env": EnvState(eval_env),
+             "rng": plumbing.RNGs(rng)}
     if args.checkpoint and os.path.isfile(args.checkpoint):
-        state = plumbing.load_checkpoint(args.checkpoint)
-        agent.load_state_dict(state["agent"])
-        buffer.load_state_dict(state["buffer"])
-        set_env_state(env, state["env"])
-        set_env_state(eval_env, state["eval_env"])
-        plumbing.set_rng_state(rng, state["rng"])
+        state = plumbing.load_checkpoint(args.checkpoint, parts)
         obs, first_step = state["obs"], state["global_step"] + 1
         print(f"resumed from {args.checkpoint} at step {state['global_step']}", flush=True)
 
     def save_checkpoint(global_step):
-        plumbing.save_checkpoint(args.checkpoint, {
-            "agent": agent.state_dict(), "buffer": buffer.state_dict(), "env": get_env_state(env),
-            "eval_env": get_env_state(eval_env), "rng": plumbing.rng_state(rng), "obs": obs,
-            "global_step": global_step})
+        plumbing.save_checkpoint(args.checkpoint, parts, obs=obs, global_step=global_step)
 
     start = time.time()
     with plumbing.StopRequest() as stop:

@@ -48,6 +48,21 @@ class ArgumentParser(argparse.ArgumentParser):
         return {name for name, value in vars(namespace).items() if value is not unset}
 
 
+def positive_int(text):
+    """argparse type: an integer > 0 (bad values become argparse's one-line error)."""
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {value}")
+    return value
+
+
+def non_negative_float(text):
+    value = float(text)
+    if not value >= 0:  # also nan
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
 def run_main(prog, main, argv=None):
     """Calls main(argv) and turns the ways a run can stop into exit codes, never a traceback:
     bad input is one line and exit 1, Ctrl-C outside the training loop exit 130, and a reader
@@ -151,32 +166,42 @@ def _from_safe(x):
     return x
 
 
-def save_checkpoint(path, state):
-    """Writes a dict of state_dicts, tensors, numpy arrays and plain values atomically."""
+def save_checkpoint(path, parts, **values):
+    """Writes the state_dict() of every part (networks, optimisers, buffers, envs, RNGs) and
+    plain values (tensors, numpy arrays, numbers, strings, lists, dicts) atomically."""
+    state = {name: part.state_dict() for name, part in parts.items()} | values
     atomic_write(path, lambda f: torch.save(_to_safe(state), f))
 
 
-def load_checkpoint(path, map_location=None):
-    """Reads a file written by save_checkpoint with torch's weights-only unpickler: a file that
-    would run code when unpickled is refused (ConfigError), as is any unreadable one."""
+def load_checkpoint(path, parts=(), map_location=None):
+    """Reads a file written by save_checkpoint with torch's weights-only unpickler (a file that
+    would run code when unpickled is refused, as is any unreadable one: ConfigError), loads the
+    state of each of `parts` into it, and returns the whole dict."""
     try:
-        state = torch.load(path, map_location=map_location, weights_only=True)
+        state = _from_safe(torch.load(path, map_location=map_location, weights_only=True))
+        for name, part in dict(parts).items():
+            part.load_state_dict(state[name])
     except Exception as e:
         raise ConfigError(f"cannot read {path}: {first_line(e)}") from None
-    return _from_safe(state)
+    return state
 
 
-def rng_state(rng):
-    """Every RNG a run draws from: numpy's Generator, torch's CPU (and CUDA) generators."""
-    return {"numpy": rng.bit_generator.state, "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
+class RNGs:
+    """Every RNG a run draws from, as a checkpoint part: numpy's Generator, torch's CPU (and
+    CUDA) generators."""
 
+    def __init__(self, rng):
+        self.rng = rng
 
-def set_rng_state(rng, state):
-    rng.bit_generator.state = state["numpy"]
-    torch.set_rng_state(state["torch"])
-    if state["cuda"] and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+    def state_dict(self):
+        return {"numpy": self.rng.bit_generator.state, "torch": torch.get_rng_state(),
+                "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
+
+    def load_state_dict(self, state):
+        self.rng.bit_generator.state = state["numpy"]
+        torch.set_rng_state(state["torch"])
+        if state["cuda"] and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["cuda"])
 
 
 # ---------------------------------------------------------------------------------------------

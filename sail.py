@@ -41,9 +41,10 @@ from tqdm import tqdm
 
 import cpu_kernels
 import plumbing
-from buffers import ReplayBuffer, TeacherBuffer, default_demo_path, load_demos, mixed_batch
-from envs import add_features, get_env_state, make_env, rollout, set_env_state
-from plumbing import ConfigError
+from buffers import ReplayBuffer, TeacherBuffer, default_demo_path, load_teacher_buffer, mixed_batch
+from envs import EnvState, make_env, rollout
+from evaluate import evaluate_run, save_model
+from plumbing import ConfigError, non_negative_float, positive_int
 from td3 import TD3, make_adam, mlp
 
 # Presets of --algo: each sets defaults that explicit flags still override.
@@ -67,16 +68,16 @@ def parse_args(argv=None):
     g.add_argument("--env", default="Walker2d-v5", help="gymnasium env id (MuJoCo v5 or any Box-action env)")
     g.add_argument("--algo", choices=sorted(PRESETS), default="sail", help="method: SAIL or a baseline preset")
     g.add_argument("--seed", type=int, default=1, help="seed of env, action space, numpy and torch")
-    g.add_argument("--total-timesteps", type=int, default=1_000_000, help="env steps of the run")
-    g.add_argument("--learning-starts", type=int, default=10_000,
+    g.add_argument("--total-timesteps", type=positive_int, default=1_000_000, help="env steps of the run")
+    g.add_argument("--learning-starts", type=positive_int, default=10_000,
                    help="uniformly random steps that initialise R_B before any update")
-    g.add_argument("--eval-freq", type=int, default=10_000, help="env steps between evaluations of the "
+    g.add_argument("--eval-freq", type=positive_int, default=10_000, help="env steps between evaluations of the "
                    "deterministic policy")
-    g.add_argument("--eval-episodes", type=int, default=5, help="episodes per evaluation")
+    g.add_argument("--eval-episodes", type=positive_int, default=5, help="episodes per evaluation")
     g.add_argument("--demos", help="demo file (default: demos/<env>.npz)")
-    g.add_argument("--num-demos", type=int, default=1, help="teacher episodes used from the demo file")
+    g.add_argument("--num-demos", type=positive_int, default=1, help="teacher episodes used from the demo file")
     g.add_argument("--device", choices=["cpu", "cuda", "auto"], default="cpu", help="torch device")
-    g.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    g.add_argument("--threads", type=positive_int, default=2, help="torch CPU threads")
     g.add_argument("--kernels", choices=["auto", "torch", "onednn"], default="auto",
                    help="CPU matmul kernels (cpu_kernels.py); auto times both at start-up")
     g.add_argument("--output-dir", default="runs", help="parent folder of the run folder")
@@ -84,22 +85,22 @@ def parse_args(argv=None):
     g.add_argument("--save-model", action="store_true", help="save the networks to model.pt at the end")
     g.add_argument("--resume", metavar="RUN_DIR", help="continue the run saved in RUN_DIR with its "
                    "flags (only --total-timesteps, --threads and --device may be given anew)")
-    g.add_argument("--checkpoint-freq", type=int, default=50_000, help="env steps between checkpoints")
+    g.add_argument("--checkpoint-freq", type=positive_int, default=50_000, help="env steps between checkpoints")
     g.add_argument("--evaluate", metavar="RUN_DIR", help="only play --eval-episodes episodes of RUN_DIR's "
                    "saved actor (model.pt, else checkpoint.pt) on an env seeded with --seed")
 
     g = p.add_argument_group("TD3 learner")
-    g.add_argument("--hidden", type=int, nargs="+", default=[256, 256], help="actor/critic hidden sizes")
-    g.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate of actor and critic")
+    g.add_argument("--hidden", type=positive_int, nargs="+", default=[256, 256], help="actor/critic hidden sizes")
+    g.add_argument("--lr", type=non_negative_float, default=3e-4, help="Adam learning rate of actor and critic")
     g.add_argument("--gamma", type=float, default=0.99, help="discount")
-    g.add_argument("--tau", type=float, default=0.005, help="Polyak averaging rate of target networks")
-    g.add_argument("--batch-size", type=int, default=256, help="critic/actor batch size")
-    g.add_argument("--policy-noise", type=float, default=0.2, help="target policy smoothing noise std")
-    g.add_argument("--noise-clip", type=float, default=0.5, help="target policy smoothing noise clip")
-    g.add_argument("--policy-delay", type=int, default=2, help="critic updates per actor update")
-    g.add_argument("--exploration-noise", type=float, default=0.1, help="std of Gaussian action noise")
-    g.add_argument("--buffer-size", type=int, default=1_000_000, help="capacity of R_B in transitions")
-    g.add_argument("--update-every", type=int, default=1,
+    g.add_argument("--tau", type=non_negative_float, default=0.005, help="Polyak averaging rate of target networks")
+    g.add_argument("--batch-size", type=positive_int, default=256, help="critic/actor batch size")
+    g.add_argument("--policy-noise", type=non_negative_float, default=0.2, help="target policy smoothing noise std")
+    g.add_argument("--noise-clip", type=non_negative_float, default=0.5, help="target policy smoothing noise clip")
+    g.add_argument("--policy-delay", type=positive_int, default=2, help="critic updates per actor update")
+    g.add_argument("--exploration-noise", type=non_negative_float, default=0.1, help="std of Gaussian action noise")
+    g.add_argument("--buffer-size", type=positive_int, default=1_000_000, help="capacity of R_B in transitions")
+    g.add_argument("--update-every", type=positive_int, default=1,
                    help="env steps between groups of as many TD3 updates (authors: 1000)")
     g.add_argument("--reward", choices=["sail", "airl", "env"], default="sail",
                    help="critic reward: sail = -log(1-D), airl = log D - log(1-D), env = sparse env reward")
@@ -107,26 +108,26 @@ def parse_args(argv=None):
     g.add_argument("--absorbing", action=argparse.BooleanOptionalAction, default=False, help="DAC absorbing states")
 
     g = p.add_argument_group("discriminator")
-    g.add_argument("--disc-hidden", type=int, nargs="+", default=[256, 256], help="hidden sizes (tanh)")
-    g.add_argument("--disc-lr", type=float, default=1e-3, help="Adam learning rate")
-    g.add_argument("--disc-freq", type=int, default=500, help="env steps between discriminator trainings")
-    g.add_argument("--disc-steps", type=int, default=10, help="minibatches per discriminator training")
-    g.add_argument("--disc-batch-size", type=int, default=256, help="teacher and self samples per minibatch")
-    g.add_argument("--grad-penalty", type=float, default=10.0, help="gradient penalty weight")
-    g.add_argument("--entropy-coef", type=float, default=0.01, help="Bernoulli entropy bonus weight")
+    g.add_argument("--disc-hidden", type=positive_int, nargs="+", default=[256, 256], help="hidden sizes (tanh)")
+    g.add_argument("--disc-lr", type=non_negative_float, default=1e-3, help="Adam learning rate")
+    g.add_argument("--disc-freq", type=positive_int, default=500, help="env steps between discriminator trainings")
+    g.add_argument("--disc-steps", type=positive_int, default=10, help="minibatches per discriminator training")
+    g.add_argument("--disc-batch-size", type=positive_int, default=256, help="teacher and self samples per minibatch")
+    g.add_argument("--grad-penalty", type=non_negative_float, default=10.0, help="gradient penalty weight")
+    g.add_argument("--entropy-coef", type=non_negative_float, default=0.01, help="Bernoulli entropy bonus weight")
 
     g = p.add_argument_group("SAIL and its ablations")
     g.add_argument("--alpha", type=float, default=0.5, help="initial share of teacher samples in batches")
     g.add_argument("--alpha-anneal-steps", type=int, default=0,
                    help="after the first promotion, anneal alpha linearly to 0 over this many steps "
                         "(0: switch at once, as the authors' code)")
-    g.add_argument("--teacher-capacity", type=int, default=10_000, help="capacity of R_E in transitions")
+    g.add_argument("--teacher-capacity", type=positive_int, default=10_000, help="capacity of R_E in transitions")
     g.add_argument("--fixed-alpha", action="store_true", help="ablation: alpha stays at --alpha")
     g.add_argument("--no-lfd", action="store_true", help="ablation: alpha = 0 always (no teacher samples)")
     g.add_argument("--no-adaptation", action="store_true", help="ablation: R_E is never updated")
     g.add_argument("--on-policy-disc", action="store_true",
                    help="ablation: D's negatives are the most recent samples, not the whole R_B")
-    g.add_argument("--on-policy-window", type=int, default=2_000,
+    g.add_argument("--on-policy-window", type=positive_int, default=2_000,
                    help="recent transitions that --on-policy-disc draws negatives from")
 
     argv = sys.argv[1:] if argv is None else argv
@@ -138,21 +139,9 @@ def parse_args(argv=None):
 
 
 def check_args(p, args):
-    positive = ["total_timesteps", "eval_freq", "eval_episodes", "num_demos", "threads", "batch_size",
-                "policy_delay", "buffer_size", "update_every", "disc_freq", "disc_steps", "disc_batch_size",
-                "teacher_capacity", "on_policy_window", "checkpoint_freq"]
-    for name in positive:
-        if getattr(args, name) <= 0:
-            p.error(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
-    for name in ("hidden", "disc_hidden"):
-        if min(getattr(args, name)) <= 0:
-            p.error(f"--{name.replace('_', '-')} sizes must be positive, got {getattr(args, name)}")
-    if args.learning_starts < 1:
-        p.error("--learning-starts must be >= 1")
-    for name in ["alpha_anneal_steps", "exploration_noise", "policy_noise", "noise_clip",
-                 "grad_penalty", "entropy_coef", "lr", "disc_lr", "tau"]:
-        if getattr(args, name) < 0:
-            p.error(f"--{name.replace('_', '-')} must be >= 0, got {getattr(args, name)}")
+    """What a single flag's type cannot check (counts and rates are checked by their types)."""
+    if args.alpha_anneal_steps < 0:
+        p.error(f"--alpha-anneal-steps must be >= 0, got {args.alpha_anneal_steps}")
     if not 0.0 <= args.alpha <= 1.0:
         p.error(f"--alpha must be in [0, 1], got {args.alpha}")
     if not 0.0 < args.gamma <= 1.0:
@@ -295,17 +284,11 @@ def train(args):
     eval_env = make_env(args.env, args.seed + 100, **env_options)
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
 
-    # R_E: the teacher's episodes, with the same features the env wrappers add online
+    # R_E: the teacher's episodes (none for TD3 on the sparse reward)
     use_demos = args.reward != "env"
-    teacher_buffer = TeacherBuffer(args.teacher_capacity)
-    if use_demos:
-        raw_obs_dim = obs_dim - int(args.time_feature) - int(args.absorbing)  # the demo files' observations
-        for episode in load_demos(args.demos or default_demo_path(args.env), args.env, raw_obs_dim, act_dim,
-                                  args.num_demos):
-            if len(episode["actions"]) > args.teacher_capacity:
-                raise ConfigError(f"--teacher-capacity {args.teacher_capacity} is smaller than a demo episode")
-            teacher_buffer.add_episode(episode["episodic_return"], *add_features(
-                episode, env.max_episode_steps, args.time_feature, args.absorbing))
+    teacher_buffer = (load_teacher_buffer(args.demos or default_demo_path(args.env), args.env, env, args.num_demos,
+                                          args.teacher_capacity, args.time_feature, args.absorbing)
+                      if use_demos else TeacherBuffer(args.teacher_capacity))
 
     agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidden=args.hidden, lr=args.lr,
                 gamma=args.gamma, tau=args.tau, policy_noise=args.policy_noise, noise_clip=args.noise_clip,
@@ -313,22 +296,18 @@ def train(args):
     self_buffer = ReplayBuffer(obs_dim, act_dim, args.buffer_size)
     disc = Discriminator(obs_dim, act_dim, args.disc_hidden).to(device)
     disc_optimizer = make_adam(disc.parameters(), args.disc_lr)
-    networks = {"agent": agent, "disc": disc, "disc_optimizer": disc_optimizer, "self_buffer": self_buffer,
-                "teacher_buffer": teacher_buffer}
+    # what a checkpoint holds besides the loop's state: each part has state_dict / load_state_dict
+    parts = {"agent": agent, "disc": disc, "disc_optimizer": disc_optimizer, "self_buffer": self_buffer,
+             "teacher_buffer": teacher_buffer, "env": EnvState(env), "eval_env": EnvState(eval_env),
+             "rng": plumbing.RNGs(rng)}
 
     # From here on Ctrl-C and SIGTERM only set stop.requested: the loop then stops between two
     # steps and checkpoints (during setup, before its first step), and the run can be resumed.
     with plumbing.StopRequest() as stop:
         if args.resume:
             run_dir = args.resume
-            saved = plumbing.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), map_location=device)
-            s = LoopState(**saved["loop"])
-            for name, part in networks.items():
-                part.load_state_dict(saved[name])
-            set_env_state(env, saved["env"])
-            set_env_state(eval_env, saved["eval_env"])
-            plumbing.set_rng_state(rng, saved["rng"])
-            obs = saved["obs"]
+            saved = plumbing.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts, map_location=device)
+            s, obs = LoopState(**saved["loop"]), saved["obs"]
         else:
             kernels = cpu_kernels.choose(args.kernels, [agent.actor.net, agent.critic.q1.net, disc.net],
                                          args.batch_size, device)
@@ -346,10 +325,7 @@ def train(args):
 
         def save_checkpoint():
             count_time()  # so that a run resumed from this checkpoint loses no training time
-            state = {name: part.state_dict() for name, part in networks.items()}
-            plumbing.save_checkpoint(os.path.join(run_dir, "checkpoint.pt"), state | {
-                "loop": dataclasses.asdict(s), "env": get_env_state(env), "eval_env": get_env_state(eval_env),
-                "rng": plumbing.rng_state(rng), "obs": obs})
+            plumbing.save_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts, loop=dataclasses.asdict(s), obs=obs)
 
         print(f"run folder: {run_dir}\nCPU kernels: {s.kernels}", flush=True)
         if use_demos:
@@ -434,50 +410,11 @@ def train(args):
     return stop.exit_code
 
 
-# ---------------------------------------------------------------------------------------------
-# Saved actors: model.pt, and playing them back (--evaluate)
-# ---------------------------------------------------------------------------------------------
-
-def save_model(run_dir, agent, disc, args):
-    model = {"actor": agent.actor.state_dict(), "critic": agent.critic.state_dict(),
-             "discriminator": disc.state_dict() if disc is not None else None,
-             "env": args.env, "hidden": args.hidden, "time_feature": args.time_feature, "absorbing": args.absorbing}
-    plumbing.save_checkpoint(os.path.join(run_dir, "model.pt"), model)
-
-
-def evaluate_saved(args):
-    """--evaluate RUN_DIR: the saved deterministic actor on fresh episodes of the dense return."""
-    run_dir = args.evaluate
-    path = next((p for p in (os.path.join(run_dir, n) for n in ("model.pt", "checkpoint.pt")) if os.path.isfile(p)),
-                None)
-    if path is None or not os.path.isfile(os.path.join(run_dir, "config.json")):
-        raise ConfigError(f"--evaluate {run_dir}: no config.json with model.pt or checkpoint.pt there")
-    config = plumbing.read_config(run_dir)
-    saved = plumbing.load_checkpoint(path, map_location="cpu")  # also a run made with --device cuda
-    torch.set_num_threads(args.threads)
-    try:
-        env = make_env(config.env, args.seed, time_feature=config.time_feature, absorbing=config.absorbing)
-    except AttributeError as e:
-        raise ConfigError(f"{run_dir}/config.json lacks {e.name}: not a run folder of sail.py") from None
-    agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low,
-                env.action_space.high, hidden=config.hidden)
-    try:
-        agent.actor.load_state_dict(saved["actor"] if "actor" in saved else saved["agent"]["actor"])
-    except (RuntimeError, KeyError, TypeError) as e:  # config.json and the saved networks disagree (sizes, env)
-        raise ConfigError(f"{path} does not fit {run_dir}/config.json: {plumbing.first_line(e)}") from None
-    returns = []
-    for i in range(args.eval_episodes):
-        episode = rollout(env, agent.act)
-        returns.append(episode["episodic_return"])
-        print(f"episode {i + 1}: return {returns[-1]:.1f}, length {len(episode['actions'])}")
-    print(f"{config.env}, {path}: mean return {np.mean(returns):.1f} +- {np.std(returns):.1f} "
-          f"over {len(returns)} episodes (env seed {args.seed})")
-    return 0
-
-
 def main(argv=None):
     args = parse_args(argv)
-    return plumbing.run_main("sail.py", evaluate_saved if args.evaluate else train, args)
+    if args.evaluate:
+        return plumbing.run_main("sail.py", lambda a: evaluate_run(a.evaluate, a.eval_episodes, a.seed, a.threads), args)
+    return plumbing.run_main("sail.py", train, args)
 
 
 if __name__ == "__main__":
