@@ -443,6 +443,9 @@ def test_make_demos_bad_input_is_one_line():
     assert_one_line_error(run_script("make_demos.py", "--env", "NoSuchEnv-v5", "--band", "0", "1"))
     assert_one_line_error(run_script("make_demos.py", "--env", "Hopper-v5", "--num-episodes", "0"))
     assert_one_line_error(run_script("make_demos.py", "--env", "Pendulum-v1"))  # no default band
+    unknown = run_script("make_demos.py", "--env", "NoSuchEnv-v5")  # not reported as a missing band
+    assert_one_line_error(unknown)
+    assert "unknown environment" in unknown.stderr
 
 
 def test_make_demos_unreadable_checkpoint_is_one_line(tmp_path):
