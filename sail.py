@@ -161,32 +161,39 @@ def check_args(p, args):
 # The discriminator (paper, "Off-Policy Adversarial TD Learning")
 # ---------------------------------------------------------------------------------------------
 
-class Discriminator(nn.Module):
-    """D(s, a) = sigmoid(logit(s, a)): teacher buffer -> 1, self buffer -> 0.
+class RunningNorm(nn.Module):
+    """Normalises observations by the running mean and variance of the data seen so far
+    (variance floor 1e-2, clipped to +-5), as in the authors' code."""
 
-    Observations are normalised by running statistics of the data D is trained on (variance
-    floor 1e-2, clipped to +-5), as in the authors' code.
-    """
+    def __init__(self, dim):
+        super().__init__()
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("var", torch.ones(dim))
+        self.register_buffer("count", torch.tensor(1e-4))
+
+    def update(self, x):
+        """Parallel mean/variance update (Chan et al.) with a batch."""
+        n, mean, var = len(x), x.mean(0), x.var(0, unbiased=False)
+        total = self.count + n
+        delta = mean - self.mean
+        self.mean += delta * n / total
+        self.var.copy_((self.var * self.count + var * n + delta**2 * self.count * n / total) / total)
+        self.count.copy_(total)
+
+    def forward(self, x):
+        return ((x - self.mean) / self.var.clamp_min(1e-2).sqrt()).clamp(-5.0, 5.0)
+
+
+class Discriminator(nn.Module):
+    """D(s, a) = sigmoid(logit(s, a)): teacher buffer -> 1, self buffer -> 0, on normalised s."""
 
     def __init__(self, obs_dim, act_dim, hidden):
         super().__init__()
         self.net = mlp([obs_dim + act_dim, *hidden, 1], nn.Tanh)
-        self.register_buffer("obs_mean", torch.zeros(obs_dim))
-        self.register_buffer("obs_var", torch.ones(obs_dim))
-        self.register_buffer("obs_count", torch.tensor(1e-4))
-
-    def update_obs_stats(self, obs):
-        """Parallel mean/variance update (Chan et al.) with a batch of observations."""
-        n, mean, var = len(obs), obs.mean(0), obs.var(0, unbiased=False)
-        total = self.obs_count + n
-        delta = mean - self.obs_mean
-        self.obs_mean += delta * n / total
-        self.obs_var.copy_((self.obs_var * self.obs_count + var * n + delta**2 * self.obs_count * n / total) / total)
-        self.obs_count.copy_(total)
+        self.obs_norm = RunningNorm(obs_dim)  # updated with the data D is trained on
 
     def inputs(self, obs, actions):
-        obs = ((obs - self.obs_mean) / self.obs_var.clamp_min(1e-2).sqrt()).clamp(-5.0, 5.0)
-        return torch.cat([obs, actions], dim=-1)
+        return torch.cat([self.obs_norm(obs), actions], dim=-1)
 
     def forward(self, x):
         """Logit of D for normalised inputs x = inputs(obs, actions)."""
@@ -221,7 +228,7 @@ def shaped_reward(disc, obs, actions, kind):
 
 def train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args):
     """--disc-steps minibatches of Eq. (4): R_E labelled 1, R_B (or its recent part) 0."""
-    device = disc.obs_mean.device
+    device = disc.obs_norm.mean.device
     for _ in range(args.disc_steps):
         t_obs, t_act, _, _ = teacher_buffer.sample(args.disc_batch_size)
         if args.on_policy_disc:
@@ -229,7 +236,7 @@ def train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args)
         else:
             b_obs, b_act, *_ = self_buffer.sample(args.disc_batch_size)
         t_obs, t_act, b_obs, b_act = (x.to(device) for x in (t_obs, t_act, b_obs, b_act))
-        disc.update_obs_stats(torch.cat([t_obs, b_obs]))
+        disc.obs_norm.update(torch.cat([t_obs, b_obs]))
         loss, d_teacher, d_self = discriminator_loss(disc, t_obs, t_act, b_obs, b_act,
                                                      args.entropy_coef, args.grad_penalty)
         disc_optimizer.zero_grad(set_to_none=True)

@@ -562,7 +562,7 @@ def test_discriminator_rewards_teacher_data_more_after_training():
     agent = lambda n: (torch.randn(n, 4) - 2.0, torch.rand(n, 2) * 0.5 - 1.0)  # noqa: E731
     for _ in range(200):
         (t_obs, t_act), (b_obs, b_act) = teacher(128), agent(128)
-        disc.update_obs_stats(torch.cat([t_obs, b_obs]))
+        disc.obs_norm.update(torch.cat([t_obs, b_obs]))
         loss, d_teacher, d_self = discriminator_loss(disc, t_obs, t_act, b_obs, b_act, 0.01, 10.0)
         optimizer.zero_grad()
         loss.backward()
@@ -923,3 +923,91 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
     assert "| SAIL | 2 | 70k, 70k | 1050 +- 550 | 1600, 500 |" in table
     # first return >= teacher (1317); first promotion; the mean up to 30k: 800 and 200 over the seeds
     assert "| 30k, never | 30k, never | 500 |" in table
+
+
+# ---------------------------------------------------------------------------------------------
+# gail.py: GAIL and POfD with TRPO
+# ---------------------------------------------------------------------------------------------
+
+def test_conjugate_gradient_solves_a_known_linear_system():
+    from gail import conjugate_gradient
+    torch.manual_seed(0)
+    m = torch.randn(12, 12, dtype=torch.float64)
+    a = m @ m.T + 0.5 * torch.eye(12, dtype=torch.float64)  # symmetric positive definite
+    b = torch.randn(12, dtype=torch.float64)
+    x = conjugate_gradient(lambda v: a @ v, b, iters=12)
+    torch.testing.assert_close(x, torch.linalg.solve(a, b))
+
+
+def test_trpo_step_improves_the_surrogate_within_the_kl_bound():
+    from gail import GaussianPolicy, trpo_step
+    torch.manual_seed(0)
+    policy = GaussianPolicy(obs_dim=4, act_dim=2, hidden=[32, 32])
+    obs = torch.randn(512, 4)
+    with torch.no_grad():
+        old = policy(obs)
+        actions = old.sample()
+    advantages = actions[:, 0] - actions[:, 1]  # better the larger a_0 - a_1: a clear direction to move
+    advantages = (advantages - advantages.mean()) / advantages.std()
+    for max_kl in (0.001, 0.01, 0.05):
+        trial = copy.deepcopy(policy)
+        stats = trpo_step(trial, obs, actions, advantages, max_kl=max_kl, damping=0.1, cg_iters=10, backtracks=10)
+        with torch.no_grad():
+            new = trial(obs)
+            kl = torch.distributions.kl_divergence(old, new).sum(-1).mean().item()
+            surrogate = (torch.exp(new.log_prob(actions).sum(-1) - old.log_prob(actions).sum(-1)) * advantages).mean()
+        assert 0.0 < kl <= max_kl and stats["kl"] == pytest.approx(kl, rel=1e-4)
+        assert surrogate > 0.0  # at the old policy the surrogate is mean(advantages) = 0
+        assert kl > 0.3 * max_kl  # the step goes out to the bound, it does not stop short
+
+
+def test_gae_bootstraps_through_truncation_and_not_through_termination():
+    from gail import gae
+    rewards, values, next_values = torch.ones(4), torch.zeros(4), torch.full((4,), 10.0)
+    terminated, end = torch.tensor([0.0, 1.0, 0.0, 0.0]), torch.tensor([0.0, 1.0, 0.0, 1.0])
+    adv = gae(rewards, values, next_values, terminated, end, gamma=0.5, lam=1.0)
+    # TD errors: 1 + 0.5 * 10 = 6 where s' bootstraps, 1 at the terminal step 1; step 3 is truncated (or the
+    # batch's end) and still bootstraps from V(s'). Sums: A3 = 6, A2 = 6 + 0.5 A3, A1 = 1, A0 = 6 + 0.5 A1
+    torch.testing.assert_close(adv, torch.tensor([6.5, 1.0, 9.0, 6.0]))
+
+
+@pytest.mark.parametrize("flags", [[], ["--pofd"]])
+def test_gail_and_pofd_smoke_runs_write_the_csv_and_resume_exactly(tmp_path, poor_hopper_demos, flags):
+    common = ["gail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--steps-per-batch", "500",
+              "--eval-freq", "1000", "--eval-episodes", "1", "--hidden", "16", "16", "--disc-hidden", "16", "16",
+              "--checkpoint-freq", "1000", "--output-dir", str(tmp_path), *flags]
+    straight = run_script(*common, "--total-timesteps", "3000", "--run-name", "a")
+    assert straight.returncode == 0, straight.stderr[-3000:]
+    first = run_script(*common, "--total-timesteps", "1000", "--run-name", "b")
+    assert first.returncode == 0, first.stderr[-3000:]
+    resumed = run_script("gail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "3000")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    rows = read_csv(tmp_path / "a")
+    assert list(rows[0]) == CSV_COLUMNS and [int(r["global_step"]) for r in rows] == [1000, 2000, 3000]
+    assert all(np.isfinite(float(r["eval_return"])) and 0 < float(r["disc_teacher"]) < 1 for r in rows)
+    config = json.load(open(tmp_path / "a" / "config.json"))
+    assert config["algo"] == ("pofd" if flags else "gail")
+    drop = ("steps_per_second", "time")
+    assert ([{k: v for k, v in r.items() if k not in drop} for r in rows]
+            == [{k: v for k, v in r.items() if k not in drop} for r in read_csv(tmp_path / "b")])
+    assert_one_line_error(run_script("gail.py", "--resume", str(tmp_path / "b"), "--max-kl", "0.05"))
+
+
+def test_gail_imitates_a_good_teacher_on_a_small_task(tmp_path):
+    """PointMass: the teacher pushes with +1 (return ~96); a random policy scores about 0. GAIL
+    sees only the teacher's (s, a) and the sparse episodic return, which it ignores: it must
+    come close to the teacher within 15k env steps (seed 1: 96 from 9k steps on, 2026-11-22)."""
+    env_id = "test_sail:PointMass-v0"
+    env = make_env(env_id, seed=0, sparse=False, time_feature=False)
+    episodes = [rollout(env, lambda obs: np.array([1.0], np.float32)) for _ in range(4)]
+    demos = str(tmp_path / "PointMass.npz")
+    save_demos(demos, episodes, env_id)
+    teacher_return = episodes[0]["episodic_return"]
+    proc = run_script("gail.py", "--env", env_id, "--demos", demos, "--total-timesteps", "15000",
+                      "--steps-per-batch", "1000", "--eval-freq", "3000", "--eval-episodes", "2",
+                      "--hidden", "32", "32", "--disc-hidden", "32", "32", "--output-dir", str(tmp_path),
+                      "--run-name", "gail", timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    returns = [float(r["eval_return"]) for r in read_csv(tmp_path / "gail")]
+    assert returns[0] < 0.6 * teacher_return  # it starts far from the teacher
+    assert np.mean(returns[-2:]) > 0.9 * teacher_return
