@@ -50,7 +50,9 @@ def parse_args(argv=None):
     p.add_argument("--output-dir", default="runs", help="parent folder of the run folder")
     p.add_argument("--run-name", help="run folder name (default: <env>__bc__<seed>__<time>)")
     p.add_argument("--save-model", action="store_true", help="save the actor to model.pt at the end")
+    p.add_argument("--tensorboard", action="store_true", help="also log progress.csv's numbers to TensorBoard")
     args = p.parse_args(argv)
+    plumbing.check_tensorboard(p, args)
     args.algo, args.absorbing = "bc", False  # what plot.py and --evaluate read from config.json
     return args
 
@@ -68,7 +70,7 @@ def train(args):
                                     vars(args))
     print(f"run folder: {run_dir}", flush=True)
 
-    rows = []
+    log = plumbing.ProgressLog(run_dir, CSV_COLUMNS, [], args.tensorboard)
     for step in tqdm(range(1, args.bc_steps + 1), desc=f"bc {args.env}", unit="update", mininterval=1.0):
         obs, actions, _, _ = teacher_buffer.sample(args.batch_size)
         loss = F.mse_loss(agent.actor(obs), actions)
@@ -79,11 +81,10 @@ def train(args):
             if not np.isfinite(loss.item()):
                 raise ConfigError(f"BC loss is {loss.item()} at step {step}")
             returns = [rollout(eval_env, agent.act)["episodic_return"] for _ in range(args.eval_episodes)]
-            rows.append({k: float("nan") for k in CSV_COLUMNS} | {
+            log.append({k: float("nan") for k in CSV_COLUMNS} | {
                 "global_step": 0, "updates": step, "eval_return": np.mean(returns),
                 "eval_return_std": np.std(returns), "teacher_threshold": teacher_buffer.threshold,
                 "teacher_episodes": teacher_buffer.num_episodes, "alpha": 1.0, "actor_loss": loss.item()})
-            plumbing.write_csv(os.path.join(run_dir, "progress.csv"), CSV_COLUMNS, rows)
     if args.save_model:
         save_model(run_dir, agent, None, args)
     return 0

@@ -77,6 +77,7 @@ def parse_args(argv=None):
     p.add_argument("--output-dir", default="runs", help="parent folder of the run folder")
     p.add_argument("--run-name", help="run folder name (default: <env>__<gail|pofd>__<seed>__<time>)")
     p.add_argument("--checkpoint-freq", type=positive_int, default=50_000, help="env steps between checkpoints")
+    p.add_argument("--tensorboard", action="store_true", help="also log progress.csv's numbers to TensorBoard")
     p.add_argument("--resume", metavar="RUN_DIR", help="continue the run saved in RUN_DIR with its flags "
                    "(only --total-timesteps and --threads may be given anew)")
     argv = sys.argv[1:] if argv is None else argv
@@ -86,6 +87,7 @@ def parse_args(argv=None):
         p.error("--gamma must be in (0, 1] and --gae-lambda in [0, 1]")
     if args.steps_per_batch < args.disc_batch_size:
         p.error("--steps-per-batch must be at least --disc-batch-size")
+    plumbing.check_tensorboard(p, args)
     args.algo = "pofd" if args.pofd else "gail"
     args.time_feature, args.absorbing = True, False  # the sparse setting's observations, as sail.py's
     return args
@@ -229,6 +231,7 @@ def train(args):
               f"{np.mean(teacher_buffer.returns):.1f}", flush=True)
         bar = tqdm(total=args.total_timesteps, initial=s.global_step, desc=f"{args.algo} {args.env}", unit="step",
                    dynamic_ncols=True, mininterval=1.0)
+        log = plumbing.ProgressLog(run_dir, CSV_COLUMNS, s.rows, args.tensorboard)
         clock, last_row = time.perf_counter(), (s.global_step, s.train_time)
         while s.global_step < args.total_timesteps and not stop.requested:
             # 1. a batch of env steps with the current policy; the env and RNG state at its start are
@@ -312,9 +315,8 @@ def train(args):
                        "train_episodic_return": s.train_episodic_return, "teacher_episodes": teacher_buffer.num_episodes,
                        "teacher_threshold": teacher_buffer.threshold, "updates": s.iterations, "time": s.train_time,
                        "steps_per_second": (s.global_step - last_row[0]) / max(s.train_time - last_row[1], 1e-9)}
-                s.rows.append({k: float("nan") for k in CSV_COLUMNS} | {k: v for k, v in stats.items() if k in CSV_COLUMNS}
-                              | row)
-                plumbing.write_csv(os.path.join(run_dir, "progress.csv"), CSV_COLUMNS, s.rows)
+                log.append({k: float("nan") for k in CSV_COLUMNS} | {k: v for k, v in stats.items() if k in CSV_COLUMNS}
+                           | row)
                 bar.set_postfix(eval=f"{row['eval_return']:.0f}", refresh=False)
                 clock, last_row = time.perf_counter(), (s.global_step, s.train_time)
             if s.global_step // args.checkpoint_freq > (s.global_step - n) // args.checkpoint_freq:

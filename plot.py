@@ -59,7 +59,7 @@ def method_name(config):
     flags = [name for flag, name in (("no_adaptation", "no adaptation"), ("fixed_alpha", "fixed alpha"),
                                      ("no_lfd", "no LfD"), ("on_policy_disc", "on-policy D"))
              if config.get(flag) and not (config["algo"] in ("dac", "td3") and flag in ("no_adaptation", "no_lfd"))]
-    name = {"sail": "SAIL", "dac": "DAC", "td3": "TD3 (sparse)", "bc": "BC"}[config["algo"]]
+    name = {"sail": "SAIL", "dac": "DAC", "td3": "TD3 (sparse)", "bc": "BC", "gail": "GAIL", "pofd": "POfD"}[config["algo"]]
     return f"{name} ({', '.join(flags)})" if flags else name
 
 

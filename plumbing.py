@@ -139,6 +139,41 @@ def write_csv(path, columns, rows):
     atomic_write(path, lambda f: f.write(text.getvalue().encode()))
 
 
+class ProgressLog:
+    """progress.csv, one row per evaluation (all rows rewritten atomically each time), and with
+    `tensorboard` the same numbers as TensorBoard scalars in the run folder.
+
+    `rows` is the loop state's own list, so that a checkpoint holds every row written so far.
+    """
+
+    def __init__(self, run_dir, columns, rows, tensorboard=False):
+        self.path, self.columns, self.rows = os.path.join(run_dir, "progress.csv"), columns, rows
+        self.writer = None
+        if tensorboard:
+            from torch.utils.tensorboard import SummaryWriter  # checked by check_tensorboard before
+            self.writer = SummaryWriter(run_dir)
+
+    def append(self, row):
+        row = {k: round(float(v), 4) if isinstance(v, (float, np.floating)) else v for k, v in row.items()}
+        self.rows.append(row)
+        write_csv(self.path, self.columns, self.rows)
+        if self.writer is not None:
+            step = row["global_step"] or row["updates"]  # BC takes no env steps: its gradient steps
+            for name, value in row.items():
+                if name != "global_step" and isinstance(value, (int, float)) and np.isfinite(value):
+                    self.writer.add_scalar(f"progress/{name}", value, step)
+            self.writer.flush()
+
+
+def check_tensorboard(parser, args):
+    """--tensorboard without the tensorboard package: one line before anything starts."""
+    if getattr(args, "tensorboard", False):
+        try:
+            import tensorboard  # noqa: F401
+        except ImportError:
+            parser.error("--tensorboard needs the tensorboard package: pip install -r requirements-extras.txt")
+
+
 # ---------------------------------------------------------------------------------------------
 # Checkpoints: plain types and tensors only, so that loading runs no code from the file
 # ---------------------------------------------------------------------------------------------

@@ -83,6 +83,8 @@ def parse_args(argv=None):
     g.add_argument("--output-dir", default="runs", help="parent folder of the run folder")
     g.add_argument("--run-name", help="run folder name (default: <env>__<algo>__<seed>__<time>)")
     g.add_argument("--save-model", action="store_true", help="save the networks to model.pt at the end")
+    g.add_argument("--tensorboard", action="store_true", help="also log progress.csv's numbers as TensorBoard "
+                   "scalars in the run folder (needs the tensorboard package)")
     g.add_argument("--resume", metavar="RUN_DIR", help="continue the run saved in RUN_DIR with its "
                    "flags (only --total-timesteps, --threads and --device may be given anew)")
     g.add_argument("--checkpoint-freq", type=positive_int, default=50_000, help="env steps between checkpoints")
@@ -135,6 +137,7 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     args.given = p.given_flags(argv)
     check_args(p, args)
+    plumbing.check_tensorboard(p, args)
     return args
 
 
@@ -338,6 +341,7 @@ def train(args):
         if use_demos:
             print(f"teacher: {teacher_buffer.num_episodes} episodes, return {np.mean(teacher_buffer.returns):.1f}",
                   flush=True)
+        log = plumbing.ProgressLog(run_dir, CSV_COLUMNS, s.rows, args.tensorboard)
         stats = {}  # the latest losses, logged at each evaluation
         bar = tqdm(total=args.total_timesteps, initial=s.global_step, desc=f"{args.algo} {args.env}",
                    unit="step", dynamic_ncols=True, mininterval=1.0)
@@ -399,9 +403,7 @@ def train(args):
                        "alpha": s.alpha, "updates": agent.num_updates, "time": s.train_time,
                        "steps_per_second": (s.global_step - last_row[0]) / max(s.train_time - last_row[1], 1e-9)}
                 row |= {k: float(stats[k]) if k in stats else float("nan") for k in CSV_COLUMNS if k not in row}
-                s.rows.append({k: round(float(v), 4) if isinstance(v, (float, np.floating)) else v
-                               for k, v in row.items()})
-                plumbing.write_csv(os.path.join(run_dir, "progress.csv"), CSV_COLUMNS, s.rows)
+                log.append(row)
                 bar.set_postfix(eval=f"{row['eval_return']:.0f}", threshold=f"{row['teacher_threshold']:.0f}",
                                 alpha=s.alpha, refresh=False)
                 clock, last_row = time.perf_counter(), (s.global_step, s.train_time)  # the evaluation's time left out

@@ -1011,3 +1011,17 @@ def test_gail_imitates_a_good_teacher_on_a_small_task(tmp_path):
     returns = [float(r["eval_return"]) for r in read_csv(tmp_path / "gail")]
     assert returns[0] < 0.6 * teacher_return  # it starts far from the teacher
     assert np.mean(returns[-2:]) > 0.9 * teacher_return
+
+
+def test_tensorboard_logs_the_csv_numbers(tmp_path, poor_hopper_demos):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "800",
+                      "--learning-starts", "300", "--eval-freq", "400", "--disc-freq", "100", "--tensorboard",
+                      "--output-dir", str(tmp_path), "--run-name", "run", *TINY)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    events = EventAccumulator(str(tmp_path / "run"))
+    events.Reload()
+    logged = [(e.step, e.value) for e in events.Scalars("progress/eval_return")]
+    rows = read_csv(tmp_path / "run")
+    assert [step for step, _ in logged] == [400, 800]
+    assert [v for _, v in logged] == pytest.approx([float(r["eval_return"]) for r in rows], rel=1e-6)  # float32
