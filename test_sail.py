@@ -1025,3 +1025,35 @@ def test_tensorboard_logs_the_csv_numbers(tmp_path, poor_hopper_demos):
     rows = read_csv(tmp_path / "run")
     assert [step for step, _ in logged] == [400, 800]
     assert [v for _, v in logged] == pytest.approx([float(r["eval_return"]) for r in rows], rel=1e-6)  # float32
+
+
+# ---------------------------------------------------------------------------------------------
+# results/grid.py: grids through GNU parallel and SLURM job arrays
+# ---------------------------------------------------------------------------------------------
+
+def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path):
+    grid = os.path.join(HERE, "results", "grid.py")
+    runs = str(tmp_path / "runs")
+    lines = run_script(grid, "list", "smoke", runs).stdout.splitlines()
+    assert len(lines) == 2 and all(" run " + runs + " Pendulum-v1__td3__" in line for line in lines)
+    # the SLURM array: task i runs line i
+    script = run_script(grid, "slurm", "smoke", runs).stdout
+    assert "#SBATCH --array=1-2" in script and f'results/grid.py task smoke {runs} "$SLURM_ARRAY_TASK_ID"' in script
+    for i, line in enumerate(lines, start=1):
+        assert run_script(grid, "task", "smoke", runs, str(i), "--dry-run").stdout.strip() == line
+    assert_one_line_error(run_script(grid, "task", "smoke", runs, "3", "--dry-run"))
+    # locally through GNU parallel; a second call starts nothing (its job log)
+    assert run_script(grid, "local", "smoke", runs, "--jobs", "2").returncode == 0
+    for seed in (1, 2):
+        assert int(read_csv(tmp_path / "runs" / f"Pendulum-v1__td3__{seed}")[-1]["global_step"]) == 400
+    before = (tmp_path / "runs" / "joblog").read_text()
+    assert run_script(grid, "local", "smoke", runs, "--jobs", "2").returncode == 0
+    assert (tmp_path / "runs" / "joblog").read_text() == before
+    # a run stopped half-way continues from its checkpoint when its line runs again
+    flags = lines[0].split(" sail.py ")[1].split()
+    half = [*flags[:flags.index("--total-timesteps") + 1], "200", *flags[flags.index("--total-timesteps") + 2:]]
+    assert run_script(grid, "run", str(tmp_path / "other"), "r", "sail.py", *half).returncode == 0
+    assert int(read_csv(tmp_path / "other" / "r")[-1]["global_step"]) == 200
+    proc = run_script(grid, "run", str(tmp_path / "other"), "r", "sail.py", *flags)
+    assert proc.returncode == 0 and "--resume" in proc.stdout
+    assert [int(r["global_step"]) for r in read_csv(tmp_path / "other" / "r")] == [200, 400]

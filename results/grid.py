@@ -1,0 +1,142 @@
+"""Experiment grids: envs x methods x seeds -> one command per line, run here through GNU
+parallel or on a cluster as a SLURM job array.
+
+    python results/grid.py list evidence                         # the commands, one per line
+    python results/grid.py local evidence runs/evidence --jobs 2  # GNU parallel; rerun to continue
+    python results/grid.py slurm evidence runs/evidence > job.sh && sbatch job.sh   # one array task a line
+
+Each command is `python results/grid.py run RUNS_DIR NAME SCRIPT FLAGS...`, which starts the run,
+continues it with --resume if it has a checkpoint, and does nothing if it is finished; so a grid
+can be stopped (Ctrl-C, a killed job, the end of a session) and started again at any point.
+GNU parallel keeps a job log in RUNS_DIR (--resume-failed: what finished is not started again).
+Every run uses one thread: on a machine with N cores, N runs at once use it best.
+"""
+
+import csv
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+REPO = os.path.dirname(HERE)
+sys.path.insert(0, REPO)
+from plumbing import ArgumentParser  # noqa: E402
+OFF_POLICY = ["--total-timesteps", "300000", "--threads", "1", "--checkpoint-freq", "10000"]
+
+
+def grid(envs, methods, seeds):
+    """(name, script, flags) for every env, seed and method: methods maps a name to (script, flags)."""
+    return [(f"{env}__{method}__{seed}", script, ["--env", env, "--seed", str(seed), *flags])
+            for seed in seeds for env in envs for method, (script, flags) in methods.items()]
+
+
+SAIL = ("sail.py", OFF_POLICY)
+GRIDS = {
+    # the runs behind README's results table and figures (300k env steps, 1 teacher episode)
+    "evidence": (
+        grid(["Hopper-v5", "Walker2d-v5"], {"sail": SAIL}, [1, 2, 3])
+        + grid(["Hopper-v5", "Walker2d-v5"], {"bc": ("bc.py", ["--threads", "1"])}, [1, 2, 3])
+        + grid(["Hopper-v5", "Walker2d-v5"], {"no-adaptation": ("sail.py", [*OFF_POLICY, "--no-adaptation"])}, [1, 2])
+        + grid(["HalfCheetah-v5", "Swimmer-v5"], {"sail": SAIL}, [1, 2])
+        + grid(["Hopper-v5", "Walker2d-v5"], {"dac": ("sail.py", [*OFF_POLICY, "--algo", "dac"])}, [1, 2])
+        + grid(["HalfCheetah-v5", "Swimmer-v5"], {"dac": ("sail.py", [*OFF_POLICY, "--algo", "dac"])}, [1])
+        + grid(["Hopper-v5", "Walker2d-v5"], {"td3": ("sail.py", [*OFF_POLICY, "--algo", "td3"])}, [1])
+        + grid(["Hopper-v5"], {name: ("sail.py", [*OFF_POLICY, flag]) for name, flag in (
+            ("no-lfd", "--no-lfd"), ("on-policy-disc", "--on-policy-disc"), ("fixed-alpha", "--fixed-alpha"))},
+            [1, 2, 3])),
+    # the paper's on-policy baselines, 1M env steps each (about 12 minutes a run with one thread)
+    "on-policy": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5"],
+                      {"gail": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1"]),
+                       "pofd": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1", "--pofd"])}, [1, 2, 3]),
+    # a tiny grid that checks the machinery (GNU parallel, resuming) in a few seconds
+    "smoke": grid(["Pendulum-v1"], {"td3": ("sail.py", ["--algo", "td3", "--total-timesteps", "400",
+                                                        "--learning-starts", "200", "--eval-freq", "200",
+                                                        "--eval-episodes", "1", "--hidden", "16", "16",
+                                                        "--threads", "1"])}, [1, 2]),
+}
+
+
+def commands(name, runs_dir):
+    return [shlex.join([sys.executable, os.path.join(HERE, "grid.py"), "run", runs_dir, run, script, *flags])
+            for run, script, flags in GRIDS[name]]
+
+
+def finished(run_dir, total):
+    """A run is finished when its CSV reaches its total steps (BC, with no env steps: has a CSV)."""
+    path = os.path.join(run_dir, "progress.csv")
+    if not os.path.isfile(path):
+        return False
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    return bool(rows) and (total is None or float(rows[-1]["global_step"]) >= total)
+
+
+def run(runs_dir, name, script, flags):
+    """Starts the run, continues it from its checkpoint, or leaves it if it is finished."""
+    run_dir = os.path.join(runs_dir, name)
+    total = int(flags[flags.index("--total-timesteps") + 1]) if "--total-timesteps" in flags else None
+    if finished(run_dir, total):
+        print(f"{name}: finished")
+        return 0
+    if os.path.isfile(os.path.join(run_dir, "checkpoint.pt")):
+        command = [script, "--resume", run_dir, *(["--total-timesteps", str(total)] if total else [])]
+    else:
+        shutil.rmtree(run_dir, ignore_errors=True)  # stopped before its first checkpoint: start again
+        command = [script, *flags, "--output-dir", runs_dir, "--run-name", name]
+    os.makedirs(runs_dir, exist_ok=True)
+    with open(os.path.join(runs_dir, f"{name}.log"), "a") as log:
+        print(f"{name}: {shlex.join(command)}", flush=True)
+        return subprocess.call([sys.executable, *command], cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+
+
+SLURM = """#!/bin/bash
+#SBATCH --job-name=sail-{grid}
+#SBATCH --array=1-{count}
+#SBATCH --cpus-per-task=1
+#SBATCH --mem=4G
+#SBATCH --time=24:00:00
+#SBATCH --output={runs_dir}/slurm-%A_%a.out
+# one array task per line of `python results/grid.py list {grid}`; resubmit to continue
+cd {repo}
+{python} results/grid.py task {grid} {runs_dir} "$SLURM_ARRAY_TASK_ID"
+"""
+
+
+def main(argv):
+    if argv[:1] == ["run"]:  # run RUNS_DIR NAME SCRIPT FLAGS... (the script's own flags follow)
+        return run(argv[1], argv[2], argv[3], argv[4:])
+    p = ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("action", choices=["list", "local", "slurm", "task"])
+    p.add_argument("grid", choices=sorted(GRIDS), help="which grid")
+    p.add_argument("runs_dir", nargs="?", help="parent folder of the run folders (default: runs/<grid>)")
+    p.add_argument("index", nargs="?", type=int, help="task: the 1-based line number (SLURM_ARRAY_TASK_ID)")
+    p.add_argument("--jobs", type=int, default=2, help="local: runs at once")
+    p.add_argument("--dry-run", action="store_true", help="task: print the command instead of running it")
+    args = p.parse_args(argv)
+    runs_dir = os.path.abspath(args.runs_dir or os.path.join(REPO, "runs", args.grid))
+    lines = commands(args.grid, runs_dir)
+    if args.action == "list":
+        print("\n".join(lines))
+    elif args.action == "slurm":
+        print(SLURM.format(grid=args.grid, count=len(lines), runs_dir=runs_dir, repo=REPO, python=sys.executable))
+    elif args.action == "task":
+        if args.index is None or not 1 <= args.index <= len(lines):
+            p.error(f"task needs a line number in 1..{len(lines)}, got {args.index}")
+        if args.dry_run:
+            print(lines[args.index - 1])
+            return 0
+        return subprocess.call(shlex.split(lines[args.index - 1]), cwd=REPO)
+    else:  # local
+        if shutil.which("parallel") is None:
+            p.error("GNU parallel is not installed (Debian/Ubuntu: apt-get install parallel)")
+        os.makedirs(runs_dir, exist_ok=True)
+        return subprocess.run(["parallel", "--will-cite", "--jobs", str(args.jobs), "--joblog",
+                               os.path.join(runs_dir, "joblog"), "--resume-failed"],
+                              input="\n".join(lines) + "\n", text=True).returncode
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
