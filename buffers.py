@@ -6,13 +6,14 @@ The demo file format is documented in README.md; `load_demos` checks it.
 """
 
 import os
+import warnings
 import zipfile
 
 import numpy as np
 import torch
 
 from envs import add_features
-from plumbing import ConfigError, atomic_write
+from plumbing import ConfigError, atomic_write, first_line
 
 DEMO_KEYS = ("observations", "actions", "next_observations", "rewards", "terminations",
              "truncations", "episode_lengths", "episode_returns", "env_id")
@@ -198,20 +199,23 @@ def default_demo_path(env_id):
 
 
 def load_demos(path, env_id, obs_dim, act_dim, num_demos=None):
-    """Reads and checks a demo file; returns a list of episode dicts (the first `num_demos`).
+    """Reads and checks demonstrations; returns a list of episode dicts (the first `num_demos`).
 
-    Each episode: observations, actions, next_observations, rewards (raw float32 arrays),
-    terminated (bool), episodic_return (float). Any problem raises ConfigError naming the file.
+    `path` is a demo file (.npz, format in README.md) or a Minari dataset: its folder, or its
+    id in the local Minari store (e.g. mujoco/hopper/medium-v0). Each episode: observations,
+    actions, next_observations, rewards (raw float32 arrays), terminated (bool),
+    episodic_return (float). Any problem raises ConfigError naming the source.
     """
-    if os.path.isdir(path):
-        raise ConfigError(f"demo file {path} is a folder; give the .npz file")
-    if not os.path.isfile(path):
+    if os.path.isfile(path):
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                data = {k: f[k] for k in f.files}
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+            raise ConfigError(f"demo file {path} is not a readable .npz file ({e})") from None
+    elif os.path.isdir(path) or not path.endswith(".npz"):
+        data = read_minari(path)
+    else:
         raise ConfigError(f"demo file {path} not found (make one with make_demos.py --env {env_id})")
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            data = {k: f[k] for k in f.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise ConfigError(f"demo file {path} is not a readable .npz file ({e})") from None
     missing = [k for k in DEMO_KEYS if k not in data]
     if missing:
         raise ConfigError(f"demo file {path} lacks {', '.join(missing)}")
@@ -246,6 +250,65 @@ def load_demos(path, env_id, obs_dim, act_dim, num_demos=None):
         })
         start += length
     return episodes
+
+
+def _minari():
+    try:
+        import minari
+    except ImportError:
+        raise ConfigError("Minari datasets need the minari package: pip install -r requirements-extras.txt") from None
+    return minari
+
+
+def read_minari(source):
+    """A Minari dataset (folder, or id in the local store; nothing is downloaded) as the arrays of
+    a demo file. Minari keeps N+1 observations for an episode of N actions: observation t and
+    t+1 make transition t."""
+    minari = _minari()
+    try:
+        if os.path.isdir(source):
+            data_dir = os.path.join(source, "data") if os.path.isdir(os.path.join(source, "data")) else source
+            dataset = minari.MinariDataset(data_dir)
+        else:
+            dataset = minari.load_dataset(source)
+        episodes = list(dataset.iterate_episodes())
+    except Exception as e:
+        where = "is a folder but not a Minari dataset" if os.path.isdir(source) else \
+            "is neither a demo file nor a dataset in the local Minari store"
+        raise ConfigError(f"{source} {where} ({first_line(e)})") from None
+    if not episodes or not all(isinstance(ep.observations, np.ndarray) for ep in episodes):
+        raise ConfigError(f"Minari dataset {source} has no episodes with flat array observations")
+    cat = lambda parts, dtype: np.concatenate(parts).astype(dtype)  # noqa: E731
+    return {
+        "observations": cat([ep.observations[:-1] for ep in episodes], np.float32),
+        "next_observations": cat([ep.observations[1:] for ep in episodes], np.float32),
+        "actions": cat([ep.actions for ep in episodes], np.float32),
+        "rewards": cat([ep.rewards for ep in episodes], np.float32),
+        "terminations": cat([ep.terminations for ep in episodes], bool),
+        "truncations": cat([ep.truncations for ep in episodes], bool),
+        "episode_lengths": np.array([len(ep.actions) for ep in episodes], dtype=np.int64),
+        "episode_returns": np.array([np.sum(ep.rewards, dtype=np.float64) for ep in episodes]),
+        "env_id": np.array(dataset.env_spec.id if dataset.env_spec is not None else ""),
+    }
+
+
+def save_minari(dataset_id, episodes, env_id):
+    """Writes episodes (dicts as envs.rollout returns them) as a Minari dataset in the local store."""
+    minari = _minari()
+    from minari.data_collector.episode_buffer import EpisodeBuffer
+    buffers = [EpisodeBuffer(observations=np.concatenate([ep["observations"], ep["next_observations"][-1:]]),
+                             actions=np.asarray(ep["actions"]), rewards=list(ep["rewards"]),
+                             terminations=[False] * (len(ep["actions"]) - 1) + [ep["terminated"]],
+                             truncations=[False] * (len(ep["actions"]) - 1) + [ep["truncated"]])
+               for ep in episodes]
+    try:
+        with warnings.catch_warnings():  # minari asks for author, e-mail, code links: not known here
+            warnings.simplefilter("ignore", UserWarning)
+            return minari.create_dataset_from_buffers(
+                dataset_id, buffers, env=env_id, eval_env=env_id, algorithm_name="make_demos.py (TD3 teacher)",
+                description=f"{len(episodes)} episodes of a sub-optimal TD3 teacher on {env_id}, recorded by make_demos.py")
+    except ValueError as e:  # e.g. the id exists already
+        raise ConfigError(f"cannot write the Minari dataset {dataset_id}: {first_line(e)}") from None
 
 
 def _last_flag(length, flag):

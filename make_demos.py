@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 import plumbing
-from buffers import ReplayBuffer, default_demo_path, save_demos
+from buffers import ReplayBuffer, _minari, default_demo_path, save_demos, save_minari
 from envs import EnvState, make_env, rollout
 from plumbing import ConfigError
 from td3 import TD3
@@ -51,6 +51,8 @@ def parse_args(argv=None):
     p.add_argument("--num-episodes", type=plumbing.positive_int, default=10, help="episodes to record")
     p.add_argument("--output", help="demo file (default: demos/<env>.npz beside this script)")
     p.add_argument("--force", action="store_true", help="replace an existing demo file")
+    p.add_argument("--minari", metavar="DATASET_ID", help="also write the episodes as this Minari dataset in the "
+                   "local Minari store (e.g. sail/hopper/teacher-v0; needs the extras)")
     p.add_argument("--total-timesteps", type=plumbing.positive_int, default=1_000_000,
                    help="give up if the band is not reached after this many env steps")
     p.add_argument("--learning-starts", type=int, default=10_000, help="uniformly random steps first")
@@ -96,6 +98,8 @@ def train(args):
         raise ConfigError(f"{args.output} exists; give --force to replace it, or another --output")
     for path in filter(None, (args.output, args.checkpoint)):  # found now, not after an hour of training
         plumbing.check_writable(path)
+    if args.minari and args.minari in _minari().list_local_datasets():
+        raise ConfigError(f"the Minari dataset {args.minari} exists already in the local store")
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     low, high = env.action_space.low, env.action_space.high
     agent = TD3(obs_dim, act_dim, low, high, hidden=args.hidden, lr=args.lr, gamma=args.gamma)
@@ -156,6 +160,9 @@ def train(args):
                         episodes.append(episode)
                     if len(episodes) == args.num_episodes:
                         save_demos(args.output, episodes, args.env)
+                        if args.minari:
+                            save_minari(args.minari, episodes, args.env)
+                            print(f"wrote the Minari dataset {args.minari}")
                         rets = [ep["episodic_return"] for ep in episodes]
                         lens = [len(ep["actions"]) for ep in episodes]
                         print(f"wrote {args.output}: {len(episodes)} episodes after {global_step} teacher steps, "

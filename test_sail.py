@@ -304,6 +304,40 @@ def test_each_bad_demo_file_gives_a_clear_error(tmp_path):
         load_demos(str(tmp_path), "Hopper-v5", 11, 3)
 
 
+def test_minari_datasets_round_trip_as_teacher_episodes(tmp_path, monkeypatch):
+    """Episodes written as a Minari dataset (N+1 observations for N actions) load as the same
+    transitions as the .npz demo file, by id from the local store and by folder; make_demos.py
+    writes one; sail.py trains from one."""
+    from buffers import save_minari
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "store"))  # the subprocesses' store too
+    episodes = recorded_episodes()
+    save_minari("test/hopper/teacher-v0", episodes, "Hopper-v5")
+    save_demos(str(tmp_path / "demo.npz"), episodes, "Hopper-v5")
+    from_file = load_demos(str(tmp_path / "demo.npz"), "Hopper-v5", 11, 3)
+    for source in ("test/hopper/teacher-v0", str(tmp_path / "store" / "test" / "hopper" / "teacher-v0")):
+        loaded = load_demos(source, "Hopper-v5", 11, 3)
+        assert len(loaded) == len(from_file) == 3
+        for a, b in zip(loaded, from_file):
+            for key in ("observations", "actions", "next_observations", "rewards"):
+                np.testing.assert_array_equal(a[key], b[key])
+            assert a["terminated"] == b["terminated"]
+            assert a["episodic_return"] == pytest.approx(b["episodic_return"], rel=1e-9)
+    with pytest.raises(ConfigError, match="for Hopper-v5, not Walker2d-v5"):
+        load_demos("test/hopper/teacher-v0", "Walker2d-v5", 17, 6)
+    with pytest.raises(ConfigError, match="local Minari store"):
+        load_demos("test/hopper/nothing-v0", "Hopper-v5", 11, 3)
+    proc = run_script("make_demos.py", "--env", "Hopper-v5", "--total-timesteps", "1500", "--learning-starts", "1000",
+                      "--eval-freq", "500", "--eval-episodes", "1", "--band", "-1000", "10000", "--num-episodes", "2",
+                      "--output", str(tmp_path / "made.npz"), "--minari", "test/hopper/made-v0")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert [ep["episodic_return"] for ep in load_demos("test/hopper/made-v0", "Hopper-v5", 11, 3)] == pytest.approx(
+        [ep["episodic_return"] for ep in load_demos(str(tmp_path / "made.npz"), "Hopper-v5", 11, 3)])
+    proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", "test/hopper/teacher-v0", "--total-timesteps", "600",
+                      "--learning-starts", "300", "--eval-freq", "300", "--disc-freq", "100",
+                      "--output-dir", str(tmp_path), "--run-name", "run", *TINY)
+    assert proc.returncode == 0 and "teacher: 1 episodes" in proc.stdout, proc.stderr[-3000:]
+
+
 @pytest.mark.parametrize("env_id", sorted(SHIPPED))
 def test_shipped_demos_load_and_are_sub_optimal(env_id):
     env = make_env(env_id, seed=0, time_feature=False)
