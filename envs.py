@@ -112,17 +112,18 @@ class AbsorbingState(gym.Wrapper):
         return np.append(obs, 0.0).astype(np.float32), reward, False, truncated, info
 
 
-def make_env(env_id, seed, sparse=True, time_feature=True, absorbing=False):
+def make_env(env_id, seed, sparse=True, time_feature=True, absorbing=False, render_mode=None):
     """Builds `env_id` seeded with `seed` (env, action space, observation space).
 
     sparse:       reward 0 except the episodic return on the last step (False: dense reward,
                   used to train the teacher only).
     time_feature: append 1 - t/T to the observation.
     absorbing:    DAC's absorbing-state indicator and self-loop.
+    render_mode:  gymnasium's, e.g. "rgb_array" for videos.
     Raises ConfigError for an unknown id or a non-Box action space.
     """
     try:
-        env = gym.make(env_id)
+        env = gym.make(env_id, render_mode=render_mode)
     except (gym.error.Error, ImportError, AttributeError, ValueError) as e:  # also "nosuchmodule:Foo-v0"
         raise ConfigError(f"unknown environment {env_id!r}: {first_line(e)}") from None
     if not isinstance(env.action_space, gym.spaces.Box):
@@ -178,18 +179,23 @@ def add_features(episode, max_steps, time_feature=True, absorbing=False):
 
 
 
-def rollout(env, policy):
-    """Runs one episode of `policy` (obs -> action) and returns its transitions.
+def rollout(env, policy, frames=None):
+    """Runs one episode of `policy` (obs -> action) and returns its transitions; with a list
+    `frames`, appends env.render() after the reset and after every step.
 
     The dict holds observations, actions, rewards, next_observations (as the env gave them),
     terminated / truncated for the episode, and episodic_return, the dense return of the episode
     (RecordEpisodeStatistics' info["episode"]["r"]).
     """
     obs, _ = env.reset()
+    if frames is not None:
+        frames.append(env.render())
     steps = []
     while True:
         action = policy(obs)
         next_obs, reward, terminated, truncated, info = env.step(action)
+        if frames is not None:
+            frames.append(env.render())
         steps.append((obs, action, reward, next_obs))
         obs = next_obs
         if terminated or truncated:

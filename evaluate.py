@@ -25,9 +25,13 @@ def save_model(run_dir, agent, disc, args):
                              time_feature=args.time_feature, absorbing=args.absorbing)
 
 
-def evaluate_run(run_dir, episodes, seed, threads):
+def evaluate_run(run_dir, episodes, seed, threads, video=None):
     """Plays `episodes` episodes of RUN_DIR's saved actor (model.pt, else checkpoint.pt) on an env
-    seeded with `seed`; prints the return and length of each, then their mean."""
+    seeded with `seed`; prints the return and length of each, then their mean. With `video`
+    (a .gif or .mp4 path) the episodes are rendered headless into it, one after another."""
+    if video is not None:
+        check_video_path(video)
+        os.environ.setdefault("MUJOCO_GL", "egl")  # headless; MUJOCO_GL=osmesa where EGL is missing
     path = next((p for p in (os.path.join(run_dir, n) for n in ("model.pt", "checkpoint.pt")) if os.path.isfile(p)),
                 None)
     if path is None or not os.path.isfile(os.path.join(run_dir, "config.json")):
@@ -36,7 +40,8 @@ def evaluate_run(run_dir, episodes, seed, threads):
     saved = plumbing.load_checkpoint(path, map_location="cpu")  # also a run made with --device cuda
     torch.set_num_threads(threads)
     try:
-        env = make_env(config.env, seed, time_feature=config.time_feature, absorbing=config.absorbing)
+        env = make_env(config.env, seed, time_feature=config.time_feature, absorbing=config.absorbing,
+                       render_mode="rgb_array" if video else None)
     except AttributeError as e:
         raise ConfigError(f"{run_dir}/config.json lacks {e.name}: not a run folder of sail.py or bc.py") from None
     agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low,
@@ -45,11 +50,44 @@ def evaluate_run(run_dir, episodes, seed, threads):
         agent.actor.load_state_dict(saved["actor"] if "actor" in saved else saved["agent"]["actor"])
     except (RuntimeError, KeyError, TypeError) as e:  # config.json and the saved networks disagree (sizes, env)
         raise ConfigError(f"{path} does not fit {run_dir}/config.json: {plumbing.first_line(e)}") from None
-    returns = []
+    returns, frames = [], [] if video else None
     for i in range(episodes):
-        episode = rollout(env, agent.act)
+        try:
+            episode = rollout(env, agent.act, frames)
+        except Exception as e:  # no OpenGL: EGL or OSMesa missing or broken
+            if video is None:
+                raise
+            raise ConfigError(f"cannot render {config.env} (MUJOCO_GL={os.environ.get('MUJOCO_GL')}): "
+                              f"{plumbing.first_line(e)}") from None
         returns.append(episode["episodic_return"])
         print(f"episode {i + 1}: return {returns[-1]:.1f}, length {len(episode['actions'])}")
     print(f"{config.env}, {path}: mean return {np.mean(returns):.1f} +- {np.std(returns):.1f} "
           f"over {len(returns)} episodes (env seed {seed})")
+    if video is not None:
+        write_video(video, frames, fps=env.metadata.get("render_fps", 30))
+        print(f"wrote {video}: {len(frames)} frames")
     return 0
+
+
+def check_video_path(path):
+    """Before anything runs: a .gif or .mp4 path that can be written (mp4 needs imageio-ffmpeg)."""
+    if not path.endswith((".gif", ".mp4")):
+        raise ConfigError(f"--video {path}: give a .gif or .mp4 file")
+    if path.endswith(".mp4"):
+        try:
+            import imageio_ffmpeg  # noqa: F401
+        except ImportError:
+            raise ConfigError("--video *.mp4 needs imageio-ffmpeg (pip install imageio-ffmpeg); .gif needs nothing more")
+    plumbing.check_writable(path)
+
+
+def write_video(path, frames, fps):
+    """The frames as a GIF or MP4, written atomically. A GIF keeps every other frame at half the
+    width and height, which keeps a 1000-step episode at a few MB."""
+    import imageio.v3 as iio
+    if path.endswith(".gif"):
+        frames, fps = [frame[::2, ::2] for frame in frames[::2]], fps / 2
+        plumbing.atomic_write(path, lambda f: iio.imwrite(f, np.stack(frames), extension=".gif",
+                                                           duration=1000 / fps, loop=0))
+    else:
+        plumbing.atomic_write(path, lambda f: iio.imwrite(f, np.stack(frames), extension=".mp4", fps=fps))

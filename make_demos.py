@@ -28,6 +28,7 @@ import torch
 
 import plumbing
 from buffers import ReplayBuffer, _minari, default_demo_path, save_demos, save_minari
+from evaluate import save_model
 from envs import EnvState, make_env, rollout
 from plumbing import ConfigError
 from td3 import TD3
@@ -51,6 +52,8 @@ def parse_args(argv=None):
     p.add_argument("--num-episodes", type=plumbing.positive_int, default=10, help="episodes to record")
     p.add_argument("--output", help="demo file (default: demos/<env>.npz beside this script)")
     p.add_argument("--force", action="store_true", help="replace an existing demo file")
+    p.add_argument("--save-teacher", metavar="DIR", help="also keep the teacher as a run folder (config.json, "
+                   "model.pt) that `sail.py --evaluate DIR` plays back")
     p.add_argument("--minari", metavar="DATASET_ID", help="also write the episodes as this Minari dataset in the "
                    "local Minari store (e.g. sail/hopper/teacher-v0; needs the extras)")
     p.add_argument("--total-timesteps", type=plumbing.positive_int, default=1_000_000,
@@ -98,6 +101,11 @@ def train(args):
         raise ConfigError(f"{args.output} exists; give --force to replace it, or another --output")
     for path in filter(None, (args.output, args.checkpoint)):  # found now, not after an hour of training
         plumbing.check_writable(path)
+    if args.save_teacher and os.path.exists(args.save_teacher):
+        raise ConfigError(f"--save-teacher {args.save_teacher} exists already")
+    if args.save_teacher:
+        plumbing.check_writable(os.path.join(args.save_teacher, "model.pt"))
+        os.rmdir(args.save_teacher)  # made by the check: the folder is written only with the teacher in it
     if args.minari and args.minari in _minari().list_local_datasets():
         raise ConfigError(f"the Minari dataset {args.minari} exists already in the local store")
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
@@ -163,6 +171,13 @@ def train(args):
                         if args.minari:
                             save_minari(args.minari, episodes, args.env)
                             print(f"wrote the Minari dataset {args.minari}")
+                        if args.save_teacher:
+                            args.algo, args.time_feature, args.absorbing = "teacher", False, False
+                            teacher_dir = plumbing.make_run_dir(os.path.dirname(os.path.abspath(args.save_teacher)),
+                                                                os.path.basename(os.path.abspath(args.save_teacher)),
+                                                                vars(args))
+                            save_model(teacher_dir, agent, None, args)
+                            print(f"wrote the teacher to {teacher_dir}")
                         rets = [ep["episodic_return"] for ep in episodes]
                         lens = [len(ep["actions"]) for ep in episodes]
                         print(f"wrote {args.output}: {len(episodes)} episodes after {global_step} teacher steps, "

@@ -90,6 +90,8 @@ def parse_args(argv=None):
     g.add_argument("--checkpoint-freq", type=positive_int, default=50_000, help="env steps between checkpoints")
     g.add_argument("--evaluate", metavar="RUN_DIR", help="only play --eval-episodes episodes of RUN_DIR's "
                    "saved actor (model.pt, else checkpoint.pt) on an env seeded with --seed")
+    g.add_argument("--video", metavar="FILE", help="with --evaluate: render the episodes headless into FILE "
+                   "(.gif, or .mp4 with imageio-ffmpeg)")
 
     g = p.add_argument_group("TD3 learner")
     g.add_argument("--hidden", type=positive_int, nargs="+", default=[256, 256], help="actor/critic hidden sizes")
@@ -158,6 +160,8 @@ def check_args(p, args):
                 "the run would write no progress.csv")
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: no CUDA device is available")
+    if args.video and not args.evaluate:
+        p.error("--video goes with --evaluate RUN_DIR")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -422,7 +426,8 @@ def train(args):
 def main(argv=None):
     args = parse_args(argv)
     if args.evaluate:
-        return plumbing.run_main("sail.py", lambda a: evaluate_run(a.evaluate, a.eval_episodes, a.seed, a.threads), args)
+        return plumbing.run_main("sail.py", lambda a: evaluate_run(a.evaluate, a.eval_episodes, a.seed, a.threads,
+                                                                   a.video), args)
     return plumbing.run_main("sail.py", train, args)
 
 

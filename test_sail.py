@@ -772,6 +772,23 @@ def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, poor_h
     assert_one_line_error(run_script("sail.py", "--evaluate", str(tmp_path / "run")))
 
 
+def test_evaluate_renders_a_video_headless(tmp_path, poor_hopper_demos):
+    import imageio.v3 as iio
+    proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "400",
+                      "--learning-starts", "200", "--eval-freq", "400", "--output-dir", str(tmp_path),
+                      "--run-name", "run", *TINY)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    video = tmp_path / "hopper.gif"
+    proc = run_script("sail.py", "--evaluate", str(tmp_path / "run"), "--eval-episodes", "2", "--video", str(video))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lengths = [int(line.split("length ")[1]) for line in proc.stdout.splitlines() if line.startswith("episode")]
+    frames = iio.imread(video)  # every other frame of both episodes (reset frame included), half size
+    assert frames.shape == ((sum(lengths) + 2 + 1) // 2, 240, 240, 3)
+    assert frames.std() > 1.0  # a picture, not a blank
+    assert_one_line_error(run_script("sail.py", "--evaluate", str(tmp_path / "run"), "--video", str(tmp_path / "x.avi")))
+    assert_one_line_error(run_script("sail.py", "--env", "Hopper-v5", "--video", str(video)))  # needs --evaluate
+
+
 def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos):
     out = ["--output-dir", str(tmp_path / "runs")]
     assert_one_line_error(run_script("sail.py", "--env", "NoSuchEnv-v5", *out))
