@@ -50,6 +50,12 @@ GRIDS = {
     "on-policy": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5"],
                       {"gail": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1"]),
                        "pofd": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1", "--pofd"])}, [1, 2, 3]),
+    # the learning bar: SAIL and DAC with today's code, five envs, 3 seeds, 300k env steps
+    "learning": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                     {"sail": SAIL, "dac": ("sail.py", [*OFF_POLICY, "--algo", "dac"])}, [1, 2, 3]),
+    # a candidate default: the authors' learning rate of 1e-3 (screened on HalfCheetah and Walker2d, seed 1)
+    "learning-lr": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                        {"sail-lr1e-3": ("sail.py", [*OFF_POLICY, "--lr", "1e-3"])}, [1, 2, 3]),
     # a tiny grid that checks the machinery (GNU parallel, resuming) in a few seconds
     "smoke": grid(["Pendulum-v1"], {"td3": ("sail.py", ["--algo", "td3", "--total-timesteps", "400",
                                                         "--learning-starts", "200", "--eval-freq", "200",
