@@ -123,7 +123,8 @@ def make_env(env_id, seed, sparse=True, time_feature=True, absorbing=False, rend
     Raises ConfigError for an unknown id or a non-Box action space.
     """
     try:
-        env = gym.make(env_id, render_mode=render_mode)
+        # render_mode only when asked: an env of the user's own need not accept the keyword
+        env = gym.make(env_id, **({"render_mode": render_mode} if render_mode else {}))
     except (gym.error.Error, ImportError, AttributeError, ValueError) as e:  # also "nosuchmodule:Foo-v0"
         raise ConfigError(f"unknown environment {env_id!r}: {first_line(e)}") from None
     if not isinstance(env.action_space, gym.spaces.Box):
