@@ -1,4 +1,4 @@
-"""The checkpoint probes behind README's results text (issue 5): what D and the critic say.
+"""The checkpoint probes: what D and the critic say.
 
     python results/probe.py RUN_DIR [--velocity-index 8]
 
