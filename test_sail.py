@@ -26,6 +26,17 @@ def run_script(*args, timeout=240):
     return subprocess.run([sys.executable, *args], cwd=HERE, capture_output=True, text=True, timeout=timeout)
 
 
+def run_scripts(*commands, timeout=240):
+    """run_script for each command, all at once (most of each is importing torch and MuJoCo)."""
+    procs = [subprocess.Popen([sys.executable, *args], cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True) for args in commands]
+    results = []
+    for args, proc in zip(commands, procs):
+        out, err = proc.communicate(timeout=timeout)
+        results.append(subprocess.CompletedProcess([sys.executable, *args], proc.returncode, out, err))
+    return results
+
+
 class PointMass(gym.Env):
     """A 1-D point mass pushed by a force in [-1, 1]; dense reward = distance moved this step.
 
@@ -474,11 +485,12 @@ def test_make_demos_smoke_run_writes_a_loadable_file(tmp_path):
 
 
 def test_make_demos_bad_input_is_one_line():
-    assert_one_line_error(run_script("make_demos.py", "--env", "NoSuchEnv-v5", "--band", "0", "1"))
-    assert_one_line_error(run_script("make_demos.py", "--env", "Hopper-v5", "--num-episodes", "0"))
-    assert_one_line_error(run_script("make_demos.py", "--env", "Pendulum-v1"))  # no default band
-    unknown = run_script("make_demos.py", "--env", "NoSuchEnv-v5")  # not reported as a missing band
-    assert_one_line_error(unknown)
+    *procs, unknown = run_scripts(("make_demos.py", "--env", "NoSuchEnv-v5", "--band", "0", "1"),
+                                  ("make_demos.py", "--env", "Hopper-v5", "--num-episodes", "0"),
+                                  ("make_demos.py", "--env", "Pendulum-v1"),  # no default band
+                                  ("make_demos.py", "--env", "NoSuchEnv-v5"))  # not reported as a missing band
+    for proc in procs + [unknown]:
+        assert_one_line_error(proc)
     assert "unknown environment" in unknown.stderr
 
 
@@ -747,68 +759,77 @@ def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_result(tmp_path
     assert_same_run(straight_run, run_dir)
 
 
-def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, poor_hopper_demos):
-    proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "600",
-                      "--learning-starts", "300", "--eval-freq", "300", "--disc-freq", "100", "--save-model",
-                      "--output-dir", str(tmp_path), "--run-name", "run", *TINY)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    from_model = run_script("sail.py", "--evaluate", str(tmp_path / "run"), "--eval-episodes", "3", "--seed", "7")
-    os.remove(tmp_path / "run" / "model.pt")  # the final checkpoint holds the same actor
-    from_checkpoint = run_script("sail.py", "--evaluate", str(tmp_path / "run"), "--eval-episodes", "3", "--seed", "7")
+def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, straight_run):
+    import shutil
+    run = shutil.copytree(straight_run, tmp_path / "run")  # with model.pt (--save-model) and checkpoint.pt
+    from_model, = run_scripts(("sail.py", "--evaluate", str(run), "--eval-episodes", "3", "--seed", "7"))
+    os.remove(run / "model.pt")  # the final checkpoint holds the same actor
+    reader_gone = subprocess.Popen([sys.executable, "sail.py", "--evaluate", str(run)], cwd=HERE,
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    reader_gone.stdout.close()  # as `| head -1` does after its line
+    from_checkpoint = run_script("sail.py", "--evaluate", str(run), "--eval-episodes", "3", "--seed", "7")
+    assert reader_gone.wait(timeout=120) == 1 and reader_gone.stderr.read() == ""
     for proc in (from_model, from_checkpoint):
         assert proc.returncode == 0, proc.stderr[-3000:]
     episodes = from_model.stdout.splitlines()[:3]
     assert [line.split(":")[0] for line in episodes] == ["episode 1", "episode 2", "episode 3"]
     assert from_checkpoint.stdout.splitlines()[:3] == episodes
     assert "checkpoint.pt: mean return" in from_checkpoint.stdout.splitlines()[3]
-    reader_gone = subprocess.Popen([sys.executable, "sail.py", "--evaluate", str(tmp_path / "run")], cwd=HERE,
-                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    reader_gone.stdout.close()  # as `| head -1` does after its line
-    assert reader_gone.wait(timeout=120) == 1 and reader_gone.stderr.read() == ""
-    config = json.load(open(tmp_path / "run" / "config.json"))
-    json.dump(config | {"hidden": [64, 64]}, open(tmp_path / "run" / "config.json", "w"))  # not the saved sizes
-    assert_one_line_error(run_script("sail.py", "--evaluate", str(tmp_path / "run")))
-    os.remove(tmp_path / "run" / "checkpoint.pt")
-    assert_one_line_error(run_script("sail.py", "--evaluate", str(tmp_path / "run")))
+    config = json.load(open(run / "config.json"))
+    json.dump(config | {"hidden": [64, 64]}, open(run / "config.json", "w"))  # not the saved sizes
+    assert_one_line_error(run_script("sail.py", "--evaluate", str(run)))
+    os.remove(run / "checkpoint.pt")
+    assert_one_line_error(run_script("sail.py", "--evaluate", str(run)))
 
 
-def test_evaluate_renders_a_video_headless(tmp_path, poor_hopper_demos):
+def test_evaluate_renders_a_video_headless(tmp_path, straight_run):
     import imageio.v3 as iio
-    proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "400",
-                      "--learning-starts", "200", "--eval-freq", "400", "--output-dir", str(tmp_path),
-                      "--run-name", "run", *TINY)
-    assert proc.returncode == 0, proc.stderr[-3000:]
     video = tmp_path / "hopper.gif"
-    proc = run_script("sail.py", "--evaluate", str(tmp_path / "run"), "--eval-episodes", "2", "--video", str(video))
+    proc, *bad = run_scripts(("sail.py", "--evaluate", str(straight_run), "--eval-episodes", "2", "--video", str(video)),
+                             ("sail.py", "--evaluate", str(straight_run), "--video", str(tmp_path / "x.avi")),
+                             ("sail.py", "--env", "Hopper-v5", "--video", str(video)))  # needs --evaluate
     assert proc.returncode == 0, proc.stderr[-3000:]
     lengths = [int(line.split("length ")[1]) for line in proc.stdout.splitlines() if line.startswith("episode")]
     frames = iio.imread(video)  # every other frame of both episodes (reset frame included), half size
     assert frames.shape == ((sum(lengths) + 2 + 1) // 2, 240, 240, 3)
     assert frames.std() > 1.0  # a picture, not a blank
-    assert_one_line_error(run_script("sail.py", "--evaluate", str(tmp_path / "run"), "--video", str(tmp_path / "x.avi")))
-    assert_one_line_error(run_script("sail.py", "--env", "Hopper-v5", "--video", str(video)))  # needs --evaluate
+    for proc in bad:
+        assert_one_line_error(proc)
 
 
-def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos):
+def main_in_process(main, argv, capsys):
+    """Calls a script's main(argv) here, as `python script.py ARGV` would, without a new
+    interpreter importing torch again: a CompletedProcess with the exit code and stderr."""
+    threads = torch.get_num_threads()
+    try:
+        code = main(list(argv))
+    except SystemExit as e:  # argparse's errors
+        code = e.code
+    finally:
+        torch.set_num_threads(threads)
+    return subprocess.CompletedProcess(argv, code, *capsys.readouterr())
+
+
+def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos, capsys):
+    import sail
     out = ["--output-dir", str(tmp_path / "runs")]
-    assert_one_line_error(run_script("sail.py", "--env", "NoSuchEnv-v5", *out))
-    assert_one_line_error(run_script("sail.py", "--env", "Walker2d-v5", "--demos", poor_hopper_demos, *out))
-    assert_one_line_error(run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos,
-                                     "--num-demos", "5", *out))
-    assert_one_line_error(run_script("sail.py", "--env", "Hopper-v5", "--demos", str(tmp_path / "none.npz"), *out))
-    assert_one_line_error(run_script("sail.py", "--total-timesteps", "-5", *out))
-    assert_one_line_error(run_script("sail.py", "--alpha", "1.5", *out))
-    assert_one_line_error(run_script("sail.py", "--reward", "env", *out))  # env reward with teacher batches
-    assert_one_line_error(run_script("sail.py", "--resume", str(tmp_path / "nothing")))
-    assert_one_line_error(run_script("sail.py", "--env", "nosuchmodule:Foo-v0", *out))
-    assert_one_line_error(run_script("sail.py", "--env", "Hopper-v5", "--demos", str(tmp_path), *out))
-    assert_one_line_error(run_script("sail.py", "--hidden", "0", *out))
-    assert_one_line_error(run_script("sail.py", "--eval-freq", "5000", "--total-timesteps", "1000", *out))
-    assert not os.path.exists(tmp_path / "runs")  # nothing was started
     blocker = tmp_path / "a-file"
     blocker.write_text("")
-    assert_one_line_error(run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos,
-                                     "--output-dir", str(blocker / "runs")))
+    for argv in (["--env", "NoSuchEnv-v5", *out],
+                 ["--env", "Walker2d-v5", "--demos", poor_hopper_demos, *out],
+                 ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--num-demos", "5", *out],
+                 ["--env", "Hopper-v5", "--demos", str(tmp_path / "none.npz"), *out],
+                 ["--total-timesteps", "-5", *out],
+                 ["--alpha", "1.5", *out],
+                 ["--reward", "env", *out],  # env reward with teacher batches
+                 ["--resume", str(tmp_path / "nothing")],
+                 ["--env", "nosuchmodule:Foo-v0", *out],
+                 ["--env", "Hopper-v5", "--demos", str(tmp_path), *out],
+                 ["--hidden", "0", *out],
+                 ["--eval-freq", "5000", "--total-timesteps", "1000", *out],
+                 ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--output-dir", str(blocker / "runs")]):
+        assert_one_line_error(main_in_process(sail.main, argv, capsys))
+    assert not os.path.exists(tmp_path / "runs")  # nothing was started
 
 
 def test_sail_surpasses_a_poor_teacher_and_the_no_adaptation_ablation_does_not(tmp_path):
@@ -1082,17 +1103,22 @@ def test_tensorboard_logs_the_csv_numbers(tmp_path, poor_hopper_demos):
 # results/grid.py: grids through GNU parallel and SLURM job arrays
 # ---------------------------------------------------------------------------------------------
 
-def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path):
+def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path, capsys):
+    import importlib.util
     grid = os.path.join(HERE, "results", "grid.py")
+    spec = importlib.util.spec_from_file_location("grid", grid)
+    grid_module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(grid_module)
     runs = str(tmp_path / "runs")
-    lines = run_script(grid, "list", "smoke", runs).stdout.splitlines()
+    lines = main_in_process(grid_module.main, ["list", "smoke", runs], capsys).stdout.splitlines()
     assert len(lines) == 2 and all(" run " + runs + " Pendulum-v1__td3__" in line for line in lines)
     # the SLURM array: task i runs line i
-    script = run_script(grid, "slurm", "smoke", runs).stdout
+    script = main_in_process(grid_module.main, ["slurm", "smoke", runs], capsys).stdout
     assert "#SBATCH --array=1-2" in script and f'results/grid.py task smoke {runs} "$SLURM_ARRAY_TASK_ID"' in script
     for i, line in enumerate(lines, start=1):
-        assert run_script(grid, "task", "smoke", runs, str(i), "--dry-run").stdout.strip() == line
-    assert_one_line_error(run_script(grid, "task", "smoke", runs, "3", "--dry-run"))
+        assert main_in_process(grid_module.main, ["task", "smoke", runs, str(i), "--dry-run"],
+                               capsys).stdout.strip() == line
+    assert_one_line_error(main_in_process(grid_module.main, ["task", "smoke", runs, "3", "--dry-run"], capsys))
     # locally through GNU parallel; a second call starts nothing (its job log)
     assert run_script(grid, "local", "smoke", runs, "--jobs", "2").returncode == 0
     for seed in (1, 2):
