@@ -790,8 +790,12 @@ def test_evaluate_renders_a_video_headless(tmp_path, straight_run):
                              ("sail.py", "--env", "Hopper-v5", "--video", str(video)))  # needs --evaluate
     assert proc.returncode == 0, proc.stderr[-3000:]
     lengths = [int(line.split("length ")[1]) for line in proc.stdout.splitlines() if line.startswith("episode")]
-    frames = iio.imread(video)  # every other frame of both episodes (reset frame included), half size
-    assert frames.shape == ((sum(lengths) + 2 + 1) // 2, 240, 240, 3)
+    from evaluate import gif_frames
+    stride, delay = gif_frames(125)  # Hopper's render_fps
+    assert (stride, delay) == (5, 40)  # real time, and a delay that browsers honour (>= 20 ms)
+    frames = iio.imread(video)  # every 5th frame of both episodes (reset frames included), half size
+    assert frames.shape == (len(range(0, sum(lengths) + 2, stride)), 240, 240, 3)
+    assert iio.immeta(video, index=0)["duration"] == delay
     assert frames.std() > 1.0  # a picture, not a blank
     for proc in bad:
         assert_one_line_error(proc)
