@@ -44,6 +44,8 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None):
                        render_mode="rgb_array" if video else None)
     except AttributeError as e:
         raise ConfigError(f"{run_dir}/config.json lacks {e.name}: not a run folder of sail.py or bc.py") from None
+    if video is not None:
+        follow_the_body(env)
     agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low,
                 env.action_space.high, hidden=config.hidden)
     try:
@@ -65,8 +67,20 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None):
           f"over {len(returns)} episodes (env seed {seed})")
     if video is not None:
         write_video(video, frames, fps=env.metadata.get("render_fps", 30))
-        print(f"wrote {video}: {len(frames)} frames")
+        print(f"wrote {video} from {len(frames)} rendered frames")
     return 0
+
+
+def follow_the_body(env):
+    """Makes the camera follow the body that the env's camera config names. Gymnasium 1.4's
+    MuJoCo envs (Hopper, Walker2d, HalfCheetah, ...) render through a free camera, which ignores
+    the config's trackbodyid: a hopper that hops well leaves the picture after a second."""
+    renderer = getattr(env.unwrapped, "mujoco_renderer", None)
+    config = getattr(renderer, "default_cam_config", None) or {}
+    if "trackbodyid" in config and renderer.camera_id == -1:
+        import mujoco
+        renderer.default_cam_config = config | {"type": mujoco.mjtCamera.mjCAMERA_TRACKING}
+        renderer.camera_id = None  # else every render() sets the camera back to free
 
 
 def check_video_path(path):

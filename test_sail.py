@@ -799,6 +799,13 @@ def test_evaluate_renders_a_video_headless(tmp_path, straight_run):
     assert frames.std() > 1.0  # a picture, not a blank
     for proc in bad:
         assert_one_line_error(proc)
+    # the camera follows the hopper (gymnasium's own free camera would let it hop out of the picture)
+    import mujoco
+    from evaluate import follow_the_body
+    env = make_env("Hopper-v5", 0, render_mode="rgb_array")
+    follow_the_body(env)
+    renderer = env.unwrapped.mujoco_renderer
+    assert renderer.camera_id is None and renderer.default_cam_config["type"] == mujoco.mjtCamera.mjCAMERA_TRACKING
 
 
 def main_in_process(main, argv, capsys):
