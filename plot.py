@@ -7,7 +7,8 @@ For each env: evaluation return against env steps, the mean over seeds of each m
 line and the range over seeds as a band, the teacher's return as a dashed line; BC (no env
 steps) as a dotted line at its final return. Writes <env>.png with SAIL and the baselines,
 <env>-ablations.png with SAIL and its ablations (fixed alpha, no LfD, on-policy D) where there
-are any (needs matplotlib: `pip install matplotlib`; without it only the table is written) and
+are any (needs matplotlib: `pip install matplotlib`; without it only the table is written);
+runs with N > 1 teacher episodes (--num-demos N) get their own <env>-Ndemos.png and section;
 results.md with, per env and method:
 seeds, env steps, final return (mean of the last 5 evaluations, for BC its last one; mean +- std
 over seeds), the env steps at which the evaluation return first reached the teacher's, the
@@ -99,7 +100,7 @@ def summarise(runs, teacher, last, early_steps):
 ABLATIONS = ("fixed alpha", "no LfD", "on-policy D")  # claims 4 and 5: drawn apart from the baselines
 
 
-def plot_env(env_id, methods, teacher, path, colors):
+def plot_env(env_id, num_demos, methods, teacher, path, colors):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -119,7 +120,8 @@ def plot_env(env_id, methods, teacher, path, colors):
         ax.plot(steps, np.nanmean(returns, 0), color=color, label=f"{method} ({len(runs)} seed{'s' * (len(runs) > 1)})")
         ax.fill_between(steps, np.nanmin(returns, 0), np.nanmax(returns, 0), color=color, alpha=0.2)
     ax.axhline(teacher, color="k", linestyle="--", label=f"teacher ({teacher:.0f})")
-    ax.set(title=f"{env_id}, sparse episodic reward, 1 teacher episode", xlabel="env steps",
+    episodes = "1 teacher episode" if num_demos == 1 else f"{num_demos} teacher episodes"
+    ax.set(title=f"{env_id}, sparse episodic reward, {episodes}", xlabel="env steps",
            ylabel="evaluation return (dense, deterministic policy)")
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -140,18 +142,21 @@ def main():
             left_out.append(f"{os.path.basename(os.path.normpath(run))} ({rows[-1]['global_step'] / 1000:.0f}k steps)"
                             if rows else os.path.basename(os.path.normpath(run)))
             continue
-        by_env[config["env"]][method_name(config)].append((run, rows))
+        key = (config["env"], config.get("num_demos", 1))  # 1 and 4 teacher episodes: apart
+        by_env[key][method_name(config)].append((run, rows))
         if config["algo"] != "td3":
-            teachers[config["env"]] = teacher_return(config)
+            teachers[key] = teacher_return(config)
     os.makedirs(args.output_dir, exist_ok=True)
 
     columns = ["method", "seeds", "env steps", "final", "per seed", "vs teacher", "reached teacher", "first promotion",
                "early"]
     lines = []
-    for env_id, methods in sorted(by_env.items()):
-        teacher = teachers.get(env_id, float("nan"))
+    for (env_id, num_demos), methods in sorted(by_env.items()):
+        teacher = teachers.get((env_id, num_demos), float("nan"))
         header = columns[:-1] + [f"mean to {args.early_steps / 1000:.0f}k"]
-        lines += [f"### {env_id} (teacher {teacher:.0f})", "", "| " + " | ".join(header) + " |",
+        title = env_id if num_demos == 1 else f"{env_id}, {num_demos} teacher episodes"
+        name = env_id if num_demos == 1 else f"{env_id}-{num_demos}demos"
+        lines += [f"### {title} (teacher {teacher:.0f})", "", "| " + " | ".join(header) + " |",
                   "|" + "---|" * len(columns)]
         for method, runs in sorted(methods.items()):
             row = summarise(runs, teacher, 1 if method == "BC" else args.last, args.early_steps) | {"method": method}
@@ -163,9 +168,10 @@ def main():
         ablations = {m: runs for m, runs in methods.items() if m == "SAIL" or any(a in m for a in ABLATIONS)}
         baselines = {m: runs for m, runs in methods.items() if not any(a in m for a in ABLATIONS)}
         try:
-            plot_env(env_id, baselines, teacher, os.path.join(args.output_dir, f"{env_id}.png"), colors)
+            plot_env(env_id, num_demos, baselines, teacher, os.path.join(args.output_dir, f"{name}.png"), colors)
             if len(ablations) > 1:
-                plot_env(env_id, ablations, teacher, os.path.join(args.output_dir, f"{env_id}-ablations.png"), colors)
+                plot_env(env_id, num_demos, ablations, teacher, os.path.join(args.output_dir, f"{name}-ablations.png"),
+                         colors)
         except ImportError:
             print("plot.py: matplotlib is not installed (pip install matplotlib): writing the table only",
                   file=sys.stderr)

@@ -56,6 +56,11 @@ GRIDS = {
     # a candidate default: the authors' learning rate of 1e-3 (screened on HalfCheetah and Walker2d, seed 1)
     "learning-lr": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                         {"sail-lr1e-3": ("sail.py", [*OFF_POLICY, "--lr", "1e-3"])}, [1, 2, 3]),
+    # the paper's 4-demonstration experiment: every method with 4 teacher episodes
+    "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
+                       {"sail-4demos": ("sail.py", [*OFF_POLICY, "--num-demos", "4"]),
+                        "gail-4demos": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1", "--num-demos", "4"]),
+                        "dac-4demos": ("sail.py", [*OFF_POLICY, "--algo", "dac", "--num-demos", "4"])}, [1, 2, 3]),
     # a tiny grid that checks the machinery (GNU parallel, resuming) in a few seconds
     "smoke": grid(["Pendulum-v1"], {"td3": ("sail.py", ["--algo", "td3", "--total-timesteps", "400",
                                                         "--learning-starts", "200", "--eval-freq", "200",
