@@ -52,22 +52,25 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None):
         agent.actor.load_state_dict(saved["actor"] if "actor" in saved else saved["agent"]["actor"])
     except (RuntimeError, KeyError, TypeError) as e:  # config.json and the saved networks disagree (sizes, env)
         raise ConfigError(f"{path} does not fit {run_dir}/config.json: {plumbing.first_line(e)}") from None
-    returns, frames = [], [] if video else None
+    returns, frames, fps = [], [], env.metadata.get("render_fps", 30)
     for i in range(episodes):
+        episode_frames = [] if video else None
         try:
-            episode = rollout(env, agent.act, frames)
+            episode = rollout(env, agent.act, episode_frames)
         except Exception as e:  # no OpenGL: EGL or OSMesa missing or broken
             if video is None:
                 raise
             raise ConfigError(f"cannot render {config.env} (MUJOCO_GL={os.environ.get('MUJOCO_GL')}): "
                               f"{plumbing.first_line(e)}") from None
+        if video is not None:  # what the video keeps, episode by episode (a 480x480 frame is 0.7 MB)
+            frames += kept_frames(video, episode_frames, fps)
         returns.append(episode["episodic_return"])
         print(f"episode {i + 1}: return {returns[-1]:.1f}, length {len(episode['actions'])}")
     print(f"{config.env}, {path}: mean return {np.mean(returns):.1f} +- {np.std(returns):.1f} "
           f"over {len(returns)} episodes (env seed {seed})")
     if video is not None:
-        write_video(video, frames, fps=env.metadata.get("render_fps", 30))
-        print(f"wrote {video} from {len(frames)} rendered frames")
+        write_video(video, frames, fps)
+        print(f"wrote {video}: {len(frames)} frames")
     return 0
 
 
@@ -103,13 +106,21 @@ def gif_frames(fps):
     return stride, 10 * max(2, round(100 * stride / fps))
 
 
+def kept_frames(path, frames, fps):
+    """The frames of one episode that a video keeps: a GIF every stride-th at half the width
+    and height (a 1000-step Hopper episode in about 1 MB), an MP4 every frame."""
+    if path.endswith(".gif"):
+        stride, _ = gif_frames(fps)
+        return [frame[::2, ::2] for frame in frames[::stride]]
+    return frames
+
+
 def write_video(path, frames, fps):
-    """The frames as a GIF (about 25 frames/s at half the width and height: a 1000-step
-    Hopper episode in about 2 MB) or as an MP4 with every frame, written atomically."""
+    """Writes kept_frames' frames as a GIF or MP4, atomically."""
     import imageio.v3 as iio
     if path.endswith(".gif"):
-        stride, delay = gif_frames(fps)
-        frames = np.stack([frame[::2, ::2] for frame in frames[::stride]])
-        plumbing.atomic_write(path, lambda f: iio.imwrite(f, frames, extension=".gif", duration=delay, loop=0))
+        _, delay = gif_frames(fps)
+        plumbing.atomic_write(path, lambda f: iio.imwrite(f, np.stack(frames), extension=".gif", duration=delay,
+                                                           loop=0))
     else:
         plumbing.atomic_write(path, lambda f: iio.imwrite(f, np.stack(frames), extension=".mp4", fps=fps))
