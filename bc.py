@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 import plumbing
 from buffers import default_demo_path, load_teacher_buffer
-from envs import make_env, rollout
+from envs import evaluate_policy, make_env
 from plumbing import ConfigError
 from evaluate import save_model
 from sail import CSV_COLUMNS
@@ -80,10 +80,9 @@ def train(args):
         if step % args.eval_freq == 0 or step == args.bc_steps:
             if not np.isfinite(loss.item()):
                 raise ConfigError(f"BC loss is {loss.item()} at step {step}")
-            returns = [rollout(eval_env, agent.act)["episodic_return"] for _ in range(args.eval_episodes)]
-            log.append({k: float("nan") for k in CSV_COLUMNS} | {
-                "global_step": 0, "updates": step, "eval_return": np.mean(returns),
-                "eval_return_std": np.std(returns), "teacher_threshold": teacher_buffer.threshold,
+            evaluation = evaluate_policy(eval_env, agent.act, args.eval_episodes)
+            log.append({k: float("nan") for k in CSV_COLUMNS} | evaluation | {
+                "global_step": 0, "updates": step, "teacher_threshold": teacher_buffer.threshold,
                 "teacher_episodes": teacher_buffer.num_episodes, "alpha": 1.0, "actor_loss": loss.item()})
     if args.save_model:
         save_model(run_dir, agent, None, args)

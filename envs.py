@@ -261,3 +261,12 @@ def set_env_state(env, state):
         mujoco.mj_forward(layer.model, layer.data)
     elif "base_state" in state:
         layer.state = copy.deepcopy(state["base_state"])
+
+
+def evaluate_policy(env, policy, episodes):
+    """The evaluation of a deterministic policy: mean and std of the dense episodic return over
+    `episodes` episodes, and their mean length (on Hopper or Walker2d a short one is a fall)."""
+    runs = [rollout(env, policy) for _ in range(episodes)]
+    returns = [run["episodic_return"] for run in runs]
+    return {"eval_return": float(np.mean(returns)), "eval_return_std": float(np.std(returns)),
+            "eval_length": float(np.mean([len(run["actions"]) for run in runs]))}

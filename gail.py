@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 import plumbing
 from buffers import default_demo_path, load_teacher_buffer
-from envs import EnvState, make_env, rollout
+from envs import EnvState, evaluate_policy, make_env
 from plumbing import non_negative_float, positive_int
 from sail import CSV_COLUMNS, Discriminator, RunningNorm, discriminator_loss, shaped_reward
 from td3 import make_adam, mlp
@@ -308,10 +308,8 @@ def train(args):
             if s.global_step // args.eval_freq > (s.global_step - n) // args.eval_freq:
                 now = time.perf_counter()
                 s.train_time += now - clock
-                eval_returns = [rollout(eval_env, lambda o: np.clip(act(o, deterministic=True), low, high))["episodic_return"]
-                           for _ in range(args.eval_episodes)]
-                row = {"global_step": s.global_step, "eval_return": np.mean(eval_returns),
-                       "eval_return_std": np.std(eval_returns),
+                mean_action = lambda o: np.clip(act(o, deterministic=True), low, high)  # noqa: E731
+                row = {"global_step": s.global_step, **evaluate_policy(eval_env, mean_action, args.eval_episodes),
                        "train_episodic_return": s.train_episodic_return, "teacher_episodes": teacher_buffer.num_episodes,
                        "teacher_threshold": teacher_buffer.threshold, "updates": s.iterations, "time": s.train_time,
                        "steps_per_second": (s.global_step - last_row[0]) / max(s.train_time - last_row[1], 1e-9)}

@@ -644,6 +644,7 @@ def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos
     rows = read_csv(run_dir)
     assert list(rows[0]) == CSV_COLUMNS
     assert all(np.isfinite(float(r["eval_return"])) for r in rows)
+    assert all(1 <= float(r["eval_length"]) < 1000 for r in rows)  # an untrained hopper falls
     model = torch.load(run_dir / "model.pt", weights_only=True)
     assert set(model["actor"]) and model["env"] == "Hopper-v5"
     config = json.load(open(run_dir / "config.json"))
@@ -875,6 +876,7 @@ def test_sail_surpasses_a_poor_teacher_and_the_no_adaptation_ablation_does_not(t
         _, err = proc.communicate(timeout=280)
         assert proc.returncode == 0, err[-3000:]
     final = {name: np.mean([float(r["eval_return"]) for r in read_csv(tmp_path / name)[-2:]]) for name in procs}
+    assert {float(r["eval_length"]) for r in read_csv(tmp_path / "sail")} == {100.0}  # only truncated
     assert final["sail"] > 3 * teacher_return
     assert final["no-adaptation"] < 2 * teacher_return
     assert int(read_csv(tmp_path / "sail")[-1]["promotions"]) > 0
