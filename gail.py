@@ -63,9 +63,12 @@ def parse_args(argv=None):
     p.add_argument("--vf-batch-size", type=positive_int, default=128, help="value network minibatch size")
     p.add_argument("--pofd-weight", type=non_negative_float, default=0.1, help="POfD: weight of r_e")
     p.add_argument("--disc-hidden", type=positive_int, nargs="+", default=[256, 256], help="D hidden sizes (tanh)")
-    p.add_argument("--disc-lr", type=non_negative_float, default=1e-3, help="D's Adam learning rate")
-    p.add_argument("--disc-epochs", type=positive_int, default=5, help="D epochs over each batch")
-    p.add_argument("--disc-batch-size", type=positive_int, default=256, help="teacher and own samples per D step")
+    # one Adam step of D per batch, as OpenAI baselines' GAIL: more (5 epochs of 256-sample steps at 1e-3
+    # were tried) lets D separate teacher and batch completely, and the reward -log(1 - D) vanishes
+    p.add_argument("--disc-lr", type=non_negative_float, default=3e-4, help="D's Adam learning rate")
+    p.add_argument("--disc-epochs", type=positive_int, default=1, help="D epochs over each batch")
+    p.add_argument("--disc-batch-size", type=positive_int, help="teacher and own samples per D step "
+                   "(default: the whole batch, --steps-per-batch)")
     # GAIL's own discriminator loss: no gradient penalty (SAIL's two-sided penalty of 10, with D
     # trained on each batch only, first pushed D's slope the wrong way: the policy followed it)
     p.add_argument("--grad-penalty", type=non_negative_float, default=0.0, help="D's gradient penalty weight")
@@ -85,6 +88,7 @@ def parse_args(argv=None):
     args.given = p.given_flags(argv)
     if not (0.0 < args.gamma <= 1.0 and 0.0 <= args.gae_lambda <= 1.0):
         p.error("--gamma must be in (0, 1] and --gae-lambda in [0, 1]")
+    args.disc_batch_size = args.disc_batch_size or args.steps_per_batch
     if args.steps_per_batch < args.disc_batch_size:
         p.error("--steps-per-batch must be at least --disc-batch-size")
     plumbing.check_tensorboard(p, args)
