@@ -56,10 +56,6 @@ GRIDS = {
     # a candidate default: the authors' learning rate of 1e-3 (screened on HalfCheetah and Walker2d, seed 1)
     "learning-lr": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                         {"sail-lr1e-3": ("sail.py", [*OFF_POLICY, "--lr", "1e-3"])}, [1, 2, 3]),
-    # a candidate default: D's negatives from the recent self samples (--on-policy-disc), which ended
-    # above SAIL on Hopper (3 seeds, grid evidence); the other four envs
-    "learning-onpolicy-d": grid(["Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                                {"on-policy-disc": ("sail.py", [*OFF_POLICY, "--on-policy-disc"])}, [1, 2, 3]),
     # a candidate default: a longer horizon (gamma 0.995), so that a fall ~130 steps ahead weighs on Q
     "learning-gamma": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                            {"sail-gamma0.995": ("sail.py", [*OFF_POLICY, "--gamma", "0.995"])}, [1, 2, 3]),
