@@ -321,12 +321,13 @@ def train(args):
         if args.resume:
             run_dir = args.resume
             saved = plumbing.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts, map_location=device)
-            s, obs = LoopState(**saved["loop"]), saved["obs"]
+            s, obs, stats = LoopState(**saved["loop"]), saved["obs"], dict(saved.get("stats", {}))
         else:
             kernels = cpu_kernels.choose(args.kernels, [agent.actor.net, agent.critic.q1.net, disc.net],
                                          args.batch_size, device)
             s = LoopState(alpha=0.0 if args.no_lfd else args.alpha, kernels=kernels)
             obs, _ = env.reset()
+            stats = {}  # the latest losses, logged at each evaluation
             config = {k: v for k, v in vars(args).items() if k != "given"}
             run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(
                 args.env, args.algo, args.seed), config)
@@ -339,14 +340,15 @@ def train(args):
 
         def save_checkpoint():
             count_time()  # so that a run resumed from this checkpoint loses no training time
-            plumbing.save_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts, loop=dataclasses.asdict(s), obs=obs)
+            # the latest losses too: D trains every --disc-freq steps, and the next evaluation logs them
+            plumbing.save_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts, loop=dataclasses.asdict(s), obs=obs,
+                                     stats={k: float(v) for k, v in stats.items()})
 
         print(f"run folder: {run_dir}\nCPU kernels: {s.kernels}", flush=True)
         if use_demos:
             print(f"teacher: {teacher_buffer.num_episodes} episodes, return {np.mean(teacher_buffer.returns):.1f}",
                   flush=True)
         log = plumbing.ProgressLog(run_dir, CSV_COLUMNS, s.rows, args.tensorboard)
-        stats = {}  # the latest losses, logged at each evaluation
         bar = tqdm(total=args.total_timesteps, initial=s.global_step, desc=f"{args.algo} {args.env}",
                    unit="step", dynamic_ncols=True, mininterval=1.0)
         clock, last_row = time.perf_counter(), (s.global_step, s.train_time)
