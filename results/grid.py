@@ -46,7 +46,7 @@ GRIDS = {
         + grid(["Hopper-v5"], {name: ("sail.py", [*OFF_POLICY, flag]) for name, flag in (
             ("no-lfd", "--no-lfd"), ("on-policy-disc", "--on-policy-disc"), ("fixed-alpha", "--fixed-alpha"))},
             [1, 2, 3])),
-    # the paper's on-policy baselines, 1M env steps each (5-9 minutes a run with one thread)
+    # the paper's on-policy baselines, 1M env steps each (5-12 minutes a run with one thread, two side by side)
     "on-policy": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5"],
                       {"gail": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1"]),
                        "pofd": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1", "--pofd"])}, [1, 2, 3]),
