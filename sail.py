@@ -42,7 +42,7 @@ from tqdm import tqdm
 import cpu_kernels
 import plumbing
 from buffers import ReplayBuffer, TeacherBuffer, default_demo_path, load_teacher_buffer, mixed_batch
-from envs import EnvState, evaluate_policy, make_env
+from envs import EnvState, evaluate_policy, get_env_state, make_env, set_env_state
 from evaluate import evaluate_run, save_model
 from plumbing import ConfigError, non_negative_float, positive_int
 from td3 import TD3, make_adam, mlp
@@ -55,9 +55,10 @@ PRESETS = {
     # TD3 on the sparse episodic reward alone: no demos, no discriminator
     "td3": {"reward": "env", "no_lfd": True, "no_adaptation": True},
 }
-CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "train_episodic_return", "teacher_threshold",
-               "teacher_episodes", "promotions", "alpha", "disc_loss", "disc_teacher", "disc_self",
-               "reward_mean", "critic_loss", "actor_loss", "q", "updates", "steps_per_second", "time"]
+CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "eval_return_target",
+               "train_episodic_return", "teacher_threshold", "teacher_episodes", "promotions", "alpha", "disc_loss",
+               "disc_teacher", "disc_self", "reward_mean", "critic_loss", "actor_loss", "q", "updates",
+               "steps_per_second", "time"]
 # what --resume RUN_DIR may change; every other flag is the saved run's
 RESUMABLE = ("total_timesteps", "threads", "device")
 
@@ -401,7 +402,14 @@ def train(args):
             # 5. evaluation of the deterministic policy, the CSV row, a checkpoint
             if s.global_step % args.eval_freq == 0:
                 count_time()
+                # The Polyak-averaged target actor (an average over ~1/tau updates) on the same start
+                # states, logged beside the deployed actor: does it smooth the one-evaluation collapses?
+                start = get_env_state(eval_env)
+                target_return = evaluate_policy(eval_env, lambda o: agent.act(o, target=True),
+                                                args.eval_episodes)["eval_return"]
+                set_env_state(eval_env, start)
                 row = {"global_step": s.global_step, **evaluate_policy(eval_env, agent.act, args.eval_episodes),
+                       "eval_return_target": target_return,
                        "train_episodic_return": s.train_episodic_return,
                        "teacher_threshold": teacher_buffer.threshold if use_demos else float("nan"),
                        "teacher_episodes": teacher_buffer.num_episodes, "promotions": s.promotions,

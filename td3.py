@@ -101,10 +101,12 @@ class TD3:
         return [self.actor, self.critic, self.actor_target, self.critic_target]
 
     @torch.no_grad()
-    def act(self, obs):
-        """Deterministic action for one observation (numpy in, numpy out)."""
+    def act(self, obs, target=False):
+        """Deterministic action for one observation (numpy in, numpy out); with `target`, the
+        Polyak-averaged target actor's."""
         obs = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
-        return self.actor(obs.unsqueeze(0))[0].cpu().numpy()
+        actor = self.actor_target if target else self.actor
+        return actor(obs.unsqueeze(0))[0].cpu().numpy()
 
     def explore(self, obs, exploration_noise, rng):
         """The actor's action plus Gaussian noise (std: exploration_noise x half the action range)."""
