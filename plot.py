@@ -6,8 +6,9 @@
 For each env: evaluation return against env steps, the mean over seeds of each method as a
 line and the range over seeds as a band, the teacher's return as a dashed line; BC (no env
 steps) as a dotted line at its final return. Writes <env>.png with SAIL and the baselines,
-<env>-ablations.png with SAIL and its ablations (fixed alpha, no LfD, on-policy D) where there
-are any (needs matplotlib: `pip install matplotlib`; without it only the table is written);
+<env>-ablations.png with SAIL, its ablations (fixed alpha, no LfD, on-policy D) and its learner
+variants (a changed --gamma) where there are any (needs matplotlib: `pip install matplotlib`;
+without it only the table is written);
 runs with N > 1 teacher episodes (--num-demos N) get their own <env>-Ndemos.png and section;
 results.md with, per env and method:
 seeds, env steps, final return (mean of the last 5 evaluations, for BC its last one; mean +- std
@@ -55,11 +56,19 @@ def parse_args():
     return args
 
 
+# learner settings tried as variants of sail.py's runs (sail, dac, td3), with sail.py's defaults:
+# a run that changed one is not pooled with the others
+VARIANTS = (("gamma", 0.99),)
+
+
 def method_name(config):
-    """The paper's name of what a run trained: its --algo, plus the ablation flags it set."""
+    """The paper's name of what a run trained: its --algo, plus the ablation flags it set and the
+    learner settings (VARIANTS) it changed."""
     flags = [name for flag, name in (("no_adaptation", "no adaptation"), ("fixed_alpha", "fixed alpha"),
                                      ("no_lfd", "no LfD"), ("on_policy_disc", "on-policy D"))
              if config.get(flag) and not (config["algo"] in ("dac", "td3") and flag in ("no_adaptation", "no_lfd"))]
+    if config["algo"] in ("sail", "dac", "td3"):  # gail.py and bc.py have defaults of their own
+        flags += [f"{key} {config[key]:g}" for key, default in VARIANTS if config.get(key, default) != default]
     name = {"sail": "SAIL", "dac": "DAC", "td3": "TD3 (sparse)", "bc": "BC", "gail": "GAIL", "pofd": "POfD"}[config["algo"]]
     return f"{name} ({', '.join(flags)})" if flags else name
 
@@ -97,7 +106,8 @@ def summarise(runs, teacher, last, early_steps):
             "reached teacher": when(reached), "first promotion": when(promoted), "early": f"{np.mean(early):.0f}"}
 
 
-ABLATIONS = ("fixed alpha", "no LfD", "on-policy D")  # claims 4 and 5: drawn apart from the baselines
+# claims 4 and 5, and the learner variants: drawn with SAIL, apart from the baselines
+ABLATIONS = ("fixed alpha", "no LfD", "on-policy D", *(key for key, _ in VARIANTS))
 
 
 def plot_env(env_id, num_demos, methods, teacher, path, colors):

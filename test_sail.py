@@ -982,12 +982,14 @@ def test_a_diverging_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_p
 def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_path):
     """Two seeds of made-up CSVs: the table's numbers are computed from them as README says."""
     runs = []
-    for seed, returns, num_demos in ((1, [100, 900, 1400, 1500, 1600, 1700, 1800], 1),
-                                     (2, [100, 200, 300, 400, 500, 600, 700], 1),
-                                     (1, [100, 200, 300, 400, 500, 600, 700], 4)):  # 4 teacher episodes: apart
-        run = tmp_path / f"Hopper-v5__sail-{num_demos}__{seed}"
+    for seed, returns, num_demos, gamma in ((1, [100, 900, 1400, 1500, 1600, 1700, 1800], 1, 0.99),
+                                            (2, [100, 200, 300, 400, 500, 600, 700], 1, 0.99),
+                                            (1, [100, 200, 300, 400, 500, 600, 700], 4, 0.99),  # 4 episodes: apart
+                                            (1, [100, 200, 300, 400, 500, 600, 800], 1, 0.995)):  # a variant: apart
+        run = tmp_path / f"Hopper-v5__sail-{num_demos}-{gamma}__{seed}"
         run.mkdir()
-        config = {"env": "Hopper-v5", "algo": "sail", "seed": seed, "num_demos": num_demos, "demos": None}
+        config = {"env": "Hopper-v5", "algo": "sail", "seed": seed, "num_demos": num_demos, "demos": None,
+                  "gamma": gamma}
         (run / "config.json").write_text(json.dumps(config))
         rows = [{k: "nan" for k in CSV_COLUMNS} | {"global_step": 10_000 * (i + 1), "eval_return": r,
                                                     "promotions": int(seed == 1 and i >= 2)}
@@ -1014,7 +1016,11 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
     teacher4 = float(np.mean(np.load(os.path.join(HERE, "demos", "Hopper-v5.npz"))["episode_returns"][:4]))
     assert f"### Hopper-v5, 4 teacher episodes (teacher {teacher4:.0f})" in table
     assert "| SAIL | 1 | 70k | 500 +- 0 | 500 |" in table
-    assert sorted(p.name for p in (tmp_path / "plots").glob("*.png")) == ["Hopper-v5-4demos.png", "Hopper-v5.png"]
+    assert "| SAIL (gamma 0.995) | 1 | 70k | 520 +- 0 | 520 |" in table
+    assert sorted(p.name for p in (tmp_path / "plots").glob("*.png")) == ["Hopper-v5-4demos.png",
+                                                                         "Hopper-v5-ablations.png", "Hopper-v5.png"]
+    from plot import method_name
+    assert method_name({"algo": "gail", "gamma": 0.995}) == "GAIL"  # gail.py's own default, not a variant
 
 
 # ---------------------------------------------------------------------------------------------
