@@ -645,6 +645,8 @@ def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos
     assert list(rows[0]) == CSV_COLUMNS
     assert all(np.isfinite(float(r["eval_return"])) for r in rows)
     assert all(1 <= float(r["eval_length"]) < 1000 for r in rows)  # an untrained hopper falls
+    if name != "bc":  # before the first update the target actor is the actor: same start states, same return
+        assert all(r["eval_return_target"] == r["eval_return"] for r in rows if int(r["global_step"]) < 1000)
     model = torch.load(run_dir / "model.pt", weights_only=True)
     assert set(model["actor"]) and model["env"] == "Hopper-v5"
     config = json.load(open(run_dir / "config.json"))
