@@ -17,12 +17,18 @@ from td3 import TD3
 
 
 def save_model(run_dir, agent, disc, args):
-    """model.pt: actor, critics and discriminator (None for BC), with what rebuilds the actor."""
-    model = {"actor": agent.actor, "critic": agent.critic}
+    """model.pt: the deployed actor (--deploy), critics and discriminator (None for BC), with what
+    rebuilds the actor."""
+    model = {"actor": agent.actor_target if deploys_target(args) else agent.actor, "critic": agent.critic}
     if disc is not None:
         model["discriminator"] = disc
     plumbing.save_checkpoint(os.path.join(run_dir, "model.pt"), model, env=args.env, hidden=args.hidden,
                              time_feature=args.time_feature, absorbing=args.absorbing)
+
+
+def deploys_target(args):
+    """Whether a run deploys the target actor (runs made before --deploy existed deployed the actor)."""
+    return getattr(args, "deploy", "actor") == "target"
 
 
 def evaluate_run(run_dir, episodes, seed, threads, video=None):
@@ -49,7 +55,8 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None):
     agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low,
                 env.action_space.high, hidden=config.hidden)
     try:
-        agent.actor.load_state_dict(saved["actor"] if "actor" in saved else saved["agent"]["actor"])
+        agent.actor.load_state_dict(saved["actor"] if "actor" in saved else
+                                    saved["agent"]["actor_target" if deploys_target(config) else "actor"])
     except (RuntimeError, KeyError, TypeError) as e:  # config.json and the saved networks disagree (sizes, env)
         raise ConfigError(f"{path} does not fit {run_dir}/config.json: {plumbing.first_line(e)}") from None
     returns, frames, fps = [], [], env.metadata.get("render_fps", 30)

@@ -55,7 +55,7 @@ PRESETS = {
     # TD3 on the sparse episodic reward alone: no demos, no discriminator
     "td3": {"reward": "env", "no_lfd": True, "no_adaptation": True},
 }
-CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "eval_return_target",
+CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "eval_return_actor", "eval_return_target",
                "train_episodic_return", "teacher_threshold", "teacher_episodes", "promotions", "alpha", "disc_loss",
                "disc_teacher", "disc_self", "reward_mean", "critic_loss", "actor_loss", "q", "updates",
                "steps_per_second", "time"]
@@ -93,6 +93,8 @@ def parse_args(argv=None):
                    "saved actor (model.pt, else checkpoint.pt) on an env seeded with --seed")
     g.add_argument("--video", metavar="FILE", help="with --evaluate: render the episodes headless into FILE "
                    "(.gif, or .mp4 with imageio-ffmpeg)")
+    g.add_argument("--deploy", choices=["actor", "target"], default="actor", help="the policy that eval_return "
+                   "scores, model.pt holds and --evaluate plays: the actor or its Polyak-averaged target copy")
 
     g = p.add_argument_group("TD3 learner")
     g.add_argument("--hidden", type=positive_int, nargs="+", default=[256, 256], help="actor/critic hidden sizes")
@@ -402,14 +404,14 @@ def train(args):
             # 5. evaluation of the deterministic policy, the CSV row, a checkpoint
             if s.global_step % args.eval_freq == 0:
                 count_time()
-                # The Polyak-averaged target actor (an average over ~1/tau updates) on the same start
-                # states, logged beside the deployed actor: does it smooth the one-evaluation collapses?
+                # Both the actor and its Polyak-averaged target copy (an average over ~1/tau updates), on
+                # the same start states; the target first, so the eval env ends where one evaluation leaves it
                 start = get_env_state(eval_env)
-                target_return = evaluate_policy(eval_env, lambda o: agent.act(o, target=True),
-                                                args.eval_episodes)["eval_return"]
+                target = evaluate_policy(eval_env, lambda o: agent.act(o, target=True), args.eval_episodes)
                 set_env_state(eval_env, start)
-                row = {"global_step": s.global_step, **evaluate_policy(eval_env, agent.act, args.eval_episodes),
-                       "eval_return_target": target_return,
+                actor = evaluate_policy(eval_env, agent.act, args.eval_episodes)
+                row = {"global_step": s.global_step, **(target if args.deploy == "target" else actor),
+                       "eval_return_actor": actor["eval_return"], "eval_return_target": target["eval_return"],
                        "train_episodic_return": s.train_episodic_return,
                        "teacher_threshold": teacher_buffer.threshold if use_demos else float("nan"),
                        "teacher_episodes": teacher_buffer.num_episodes, "promotions": s.promotions,

@@ -630,6 +630,25 @@ SMOKE = {
 }
 
 
+def test_deploy_target_changes_what_is_scored_and_saved_not_what_is_learned(tmp_path, poor_hopper_demos):
+    common = ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--output-dir", str(tmp_path), "--save-model",
+              "--hidden", "32", "32", "--disc-hidden", "32", "32", "--threads", "1", "--eval-episodes", "1",
+              "--total-timesteps", "1600", "--learning-starts", "1000", "--eval-freq", "400", "--disc-freq", "200",
+              "--checkpoint-freq", "400", "--kernels", "torch"]
+    procs = run_scripts(*[("sail.py", *common, "--run-name", deploy, "--deploy", deploy)
+                          for deploy in ("actor", "target")])
+    assert all(proc.returncode == 0 for proc in procs), procs[-1].stderr[-3000:]
+    actor_rows, target_rows = read_csv(tmp_path / "actor"), read_csv(tmp_path / "target")
+    timing = {"time", "steps_per_second", "eval_return", "eval_return_std", "eval_length"}
+    assert [{k: v for k, v in r.items() if k not in timing} for r in actor_rows] == \
+           [{k: v for k, v in r.items() if k not in timing} for r in target_rows]  # the same learning
+    assert all(r["eval_return"] == r["eval_return_target"] for r in target_rows)
+    assert any(r["eval_return_target"] != r["eval_return_actor"] for r in target_rows)  # two policies after updates
+    checkpoint = torch.load(tmp_path / "target" / "checkpoint.pt", weights_only=True)
+    model = torch.load(tmp_path / "target" / "model.pt", weights_only=True)
+    assert all(torch.equal(model["actor"][k], checkpoint["agent"]["actor_target"][k]) for k in model["actor"])
+
+
 @pytest.mark.parametrize("name", sorted(SMOKE))
 def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos):
     common = ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--num-demos", "1", "--output-dir", str(tmp_path),
@@ -646,6 +665,7 @@ def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos
     assert all(np.isfinite(float(r["eval_return"])) for r in rows)
     assert all(1 <= float(r["eval_length"]) < 1000 for r in rows)  # an untrained hopper falls
     if name != "bc":  # before the first update the target actor is the actor: same start states, same return
+        assert all(r["eval_return"] == r["eval_return_actor"] for r in rows)
         assert all(r["eval_return_target"] == r["eval_return"] for r in rows if int(r["global_step"]) < 1000)
     model = torch.load(run_dir / "model.pt", weights_only=True)
     assert set(model["actor"]) and model["env"] == "Hopper-v5"
