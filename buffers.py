@@ -35,6 +35,9 @@ class ReplayBuffer:
         self.next_obs = torch.zeros(self.capacity, obs_dim)
         self.terminated = torch.zeros(self.capacity)
         self._views = [t.numpy() for t in self.tensors()]
+        # the episodic return of each transition's episode, NaN while that episode is running
+        self.episode_returns = torch.full((self.capacity,), float("nan"))
+        self._returns_view = self.episode_returns.numpy()
 
     def tensors(self):
         return self.obs, self.actions, self.rewards, self.next_obs, self.terminated
@@ -42,12 +45,29 @@ class ReplayBuffer:
     def add(self, obs, action, reward, next_obs, terminated):
         for view, value in zip(self._views, (obs, action, reward, next_obs, terminated)):
             view[self.ptr] = value
+        self._returns_view[self.ptr] = np.nan
         self.ptr = (self.ptr + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
-    def sample(self, batch_size):
-        """Uniform batch (obs, actions, rewards, next_obs, terminated) from the whole buffer."""
-        return self.gather(torch.randint(0, self.size, (batch_size,)))
+    def sample(self, batch_size, with_returns=False):
+        """Uniform batch (obs, actions, rewards, next_obs, terminated) from the whole buffer; with
+        `with_returns`, from the finished episodes only, and their episodic returns as well."""
+        idx = torch.randint(0, self.size, (batch_size,))
+        if not with_returns:
+            return self.gather(idx)
+        running = self.episode_returns[idx].isnan()
+        for _ in range(1000):  # resample what fell in the running episode (usually a few of 256)
+            if not running.any():
+                return self.gather(idx), self.episode_returns[idx]
+            idx[running] = torch.randint(0, self.size, (int(running.sum()),))
+            running = self.episode_returns[idx].isnan()
+        raise ConfigError("no finished episode in the self buffer to sample from: raise --learning-starts above "
+                          "the length of an episode")
+
+    def end_episode(self, start, episodic_return):
+        """Marks the transitions from index `start` up to the newest with their episode's return."""
+        self.episode_returns[torch.arange(start, start + (self.ptr - start) % self.capacity) % self.capacity] = \
+            float(episodic_return)
 
     def sample_recent(self, batch_size, window):
         """Uniform batch from the `window` most recent transitions (on-policy ablation)."""
@@ -65,12 +85,15 @@ class ReplayBuffer:
         return tuple(t[idx] for t in self.tensors())
 
     def state_dict(self):
-        return {"size": self.size, "ptr": self.ptr, "data": [t[:self.size].clone() for t in self.tensors()]}
+        return {"size": self.size, "ptr": self.ptr, "data": [t[:self.size].clone() for t in self.tensors()],
+                "episode_returns": self.episode_returns[:self.size].clone()}
 
     def load_state_dict(self, state):
         self.size, self.ptr = state["size"], state["ptr"]
         for t, saved in zip(self.tensors(), state["data"]):
             t[:self.size] = saved
+        if "episode_returns" in state:  # checkpoints from before episode returns were kept lack them
+            self.episode_returns[:self.size] = state["episode_returns"]
 
 
 class TeacherBuffer:
@@ -113,6 +136,7 @@ class TeacherBuffer:
             worst = min((ep for ep in self.episodes if ep is not new), key=lambda ep: ep[0])
             self.episodes.remove(worst)
         self._flat = [torch.cat(parts) for parts in zip(*(data for _, data in self.episodes))]
+        self._flat_returns = torch.cat([torch.full((len(data[0]),), ret) for ret, data in self.episodes])
 
     def promote(self, episodic_return, obs, actions, next_obs, terminated):
         """Adds the episode if it beats the threshold; returns whether it did."""
@@ -121,10 +145,12 @@ class TeacherBuffer:
         self.add_episode(episodic_return, obs, actions, next_obs, terminated)
         return True
 
-    def sample(self, batch_size):
-        """Uniform batch (obs, actions, next_obs, terminated) over the kept transitions."""
+    def sample(self, batch_size, with_returns=False):
+        """Uniform batch (obs, actions, next_obs, terminated) over the kept transitions; with
+        `with_returns`, the episodic returns of their episodes as well."""
         idx = torch.randint(0, len(self._flat[0]), (batch_size,))
-        return tuple(t[idx] for t in self._flat)
+        batch = tuple(t[idx] for t in self._flat)
+        return (batch, self._flat_returns[idx]) if with_returns else batch
 
     def state_dict(self):
         return {"capacity": self.capacity, "episodes": self.episodes}
@@ -148,21 +174,24 @@ def load_teacher_buffer(path, env_id, env, num_demos, capacity, time_feature, ab
     return teacher_buffer
 
 
-def mixed_batch(teacher_buffer, self_buffer, batch_size, alpha):
+def mixed_batch(teacher_buffer, self_buffer, batch_size, alpha, with_returns=False):
     """The mixture alpha * R_E + (1 - alpha) * R_B (paper, d_mix of Eq. qgrad/pigrad).
 
     round(alpha * batch_size) transitions come from the teacher buffer and the rest from the
-    self buffer. Returns (obs, actions, next_obs, terminated) and the env rewards of the self
-    part (teacher transitions carry no env reward: the learner never needs one).
+    self buffer. Returns (obs, actions, next_obs, terminated), the env rewards of the self
+    part (teacher transitions carry no env reward: the learner never needs one) and, with
+    `with_returns`, the episodic return of each transition's episode (else None).
     """
     num_teacher = round(alpha * batch_size)
-    obs, actions, rewards, next_obs, terminated = self_buffer.sample(batch_size - num_teacher)
+    sampled = self_buffer.sample(batch_size - num_teacher, with_returns)
+    (obs, actions, rewards, next_obs, terminated), returns = sampled if with_returns else (sampled, None)
     if num_teacher == 0:
-        return (obs, actions, next_obs, terminated), rewards
-    t_obs, t_actions, t_next_obs, t_terminated = teacher_buffer.sample(num_teacher)
+        return (obs, actions, next_obs, terminated), rewards, returns
+    sampled = teacher_buffer.sample(num_teacher, with_returns)
+    (t_obs, t_actions, t_next_obs, t_terminated), t_returns = sampled if with_returns else (sampled, None)
     batch = (torch.cat([t_obs, obs]), torch.cat([t_actions, actions]),
              torch.cat([t_next_obs, next_obs]), torch.cat([t_terminated, terminated]))
-    return batch, rewards
+    return batch, rewards, (torch.cat([t_returns, returns]) if with_returns else None)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -111,6 +111,9 @@ def parse_args(argv=None):
                    help="env steps between groups of as many TD3 updates (authors: 1000)")
     g.add_argument("--reward", choices=["sail", "airl", "env"], default="sail",
                    help="critic reward: sail = -log(1-D), airl = log D - log(1-D), env = sparse env reward")
+    g.add_argument("--return-bonus", type=non_negative_float, default=0.0, help="adds this weight times the "
+                   "episodic return of the transition's episode, scaled to [0, 1] by the lowest and highest "
+                   "returns seen, to the critic reward (IRCR's guidance reward); 0: off, the paper's SAIL")
     g.add_argument("--time-feature", action=argparse.BooleanOptionalAction, default=True, help="append 1 - t/T to obs")
     g.add_argument("--absorbing", action=argparse.BooleanOptionalAction, default=False, help="DAC absorbing states")
 
@@ -255,14 +258,20 @@ def train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args)
     return {"disc_loss": loss.detach(), "disc_teacher": d_teacher.detach(), "disc_self": d_self.detach()}
 
 
-def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args):
+def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_range=None):
     """Eqs. (7) and (8): one TD3 step on a batch from alpha R_E + (1 - alpha) R_B, rewarded by D."""
-    batch, env_rewards = mixed_batch(teacher_buffer, self_buffer, args.batch_size, alpha)
+    batch, env_rewards, episode_returns = mixed_batch(teacher_buffer, self_buffer, args.batch_size, alpha,
+                                                      with_returns=args.return_bonus > 0)
     obs, actions, next_obs, terminated = (x.to(agent.device) for x in batch)
     if args.reward == "env":  # the TD3-sparse baseline: the env's own (sparse episodic) reward
         rewards = env_rewards.to(agent.device)
     else:
         rewards = shaped_reward(disc, obs, actions, args.reward)
+    if args.return_bonus > 0:
+        # IRCR (Gangwani et al. 2020): every step of an episode is credited with the episode's
+        # return, so the critic learns which actions lead to better episodes, beyond imitating R_E
+        low, high = return_range
+        rewards = rewards + args.return_bonus * (episode_returns.to(agent.device) - low) / max(high - low, 1e-8)
     # DAC: the absorbing state's only action is zero (as the agent and the demos act there, and as
     # in DAC's code). With the actor's action instead, the critic is asked for Q at actions it never
     # saw in that state, the actor pushes them up, and the self-loop multiplies that by 1/(1 - gamma).
@@ -284,6 +293,7 @@ class LoopState:
     promotions: int = 0
     first_promotion_step: int | None = None
     train_episodic_return: float = float("nan")
+    return_range: tuple = (float("inf"), -float("inf"))  # lowest and highest episodic returns seen (R_E's too)
     train_time: float = 0.0             # seconds of training (evaluations excluded)
     rows: list = dataclasses.field(default_factory=list)  # progress.csv
 
@@ -329,6 +339,8 @@ def train(args):
             kernels = cpu_kernels.choose(args.kernels, [agent.actor.net, agent.critic.q1.net, disc.net],
                                          args.batch_size, device)
             s = LoopState(alpha=0.0 if args.no_lfd else args.alpha, kernels=kernels)
+            if use_demos:
+                s.return_range = (min(teacher_buffer.returns), max(teacher_buffer.returns))
             obs, _ = env.reset()
             stats = {}  # the latest losses, logged at each evaluation
             config = {k: v for k, v in vars(args).items() if k != "given"}
@@ -372,6 +384,9 @@ def train(args):
             # 2. adaptive teacher buffer: a whole episode better than the worst teacher one joins R_E
             if terminated or truncated:
                 s.train_episodic_return = float(info["episode"]["r"])
+                self_buffer.end_episode(s.episode_start, s.train_episodic_return)
+                s.return_range = (min(s.return_range[0], s.train_episodic_return),
+                                  max(s.return_range[1], s.train_episodic_return))
                 if not args.no_adaptation:
                     episode = self_buffer.latest((self_buffer.ptr - s.episode_start) % args.buffer_size)
                     if teacher_buffer.promote(s.train_episodic_return, *episode):
@@ -394,7 +409,8 @@ def train(args):
                 # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)
                 if s.global_step % args.update_every == 0:
                     for _ in range(args.update_every):
-                        stats.update(td3_update(agent, disc, teacher_buffer, self_buffer, s.alpha, args))
+                        stats.update(td3_update(agent, disc, teacher_buffer, self_buffer, s.alpha, args,
+                                                s.return_range))
                     bad = {k: float(v) for k, v in stats.items() if not math.isfinite(float(v))}
                     if bad:  # stop before a diverged actor acts in the env; the last checkpoint stays good
                         bar.close()

@@ -211,6 +211,29 @@ def test_replay_buffer_samples_only_what_was_added_and_wraps():
     assert set(recent[:, 0].tolist()) == {11, 12, 13}
 
 
+def test_episode_returns_mark_finished_episodes_only_and_wrap():
+    buffer = ReplayBuffer(obs_dim=1, act_dim=1, capacity=10)
+    start = 0
+    for i in range(13):  # episodes of 4 steps with return 10 * their number: 0-3, 4-7, 8-11 (wraps), 12 running
+        buffer.add([i], [0], 0.0, [i + 1], 0.0)
+        if i % 4 == 3:
+            buffer.end_episode(start, 10.0 * (i // 4))
+            start = buffer.ptr
+    torch.manual_seed(0)
+    (obs, *_), returns = buffer.sample(2000, with_returns=True)
+    assert set(obs[:, 0].tolist()) == set(range(3, 12))  # 0-2 overwritten, 12 still running
+    torch.testing.assert_close(returns, 10.0 * (obs[:, 0] // 4))
+    teacher = TeacherBuffer(capacity=100)
+    teacher.add_episode(50.0, *episode_arrays(0, 40))
+    teacher.add_episode(80.0, *episode_arrays(1, 40))
+    (obs, *_), returns = teacher.sample(500, with_returns=True)
+    torch.testing.assert_close(returns, torch.where(obs[:, 0] == 1, 80.0, 50.0))
+    state = buffer.state_dict()
+    copy = ReplayBuffer(obs_dim=1, act_dim=1, capacity=10)
+    copy.load_state_dict(state)
+    torch.testing.assert_close(copy.episode_returns, buffer.episode_returns, equal_nan=True)
+
+
 def episode_arrays(value, length, obs_dim=3, act_dim=2):
     obs = np.full((length, obs_dim), value, np.float32)
     return obs, np.full((length, act_dim), value, np.float32), obs + 1, np.zeros(length, np.float32)
@@ -248,7 +271,8 @@ def test_mixed_sampling_proportions(alpha):
     self_buffer = ReplayBuffer(obs_dim=3, act_dim=2, capacity=100)
     for _ in range(50):
         self_buffer.add(np.zeros(3), np.zeros(2), 0.0, np.ones(3), 0.0)
-    (obs, actions, next_obs, terminated), rewards = mixed_batch(teacher, self_buffer, 256, alpha)
+    (obs, actions, next_obs, terminated), rewards, returns = mixed_batch(teacher, self_buffer, 256, alpha)
+    assert returns is None
     assert obs.shape == (256, 3) and actions.shape == (256, 2) and terminated.shape == (256,)
     assert int((obs[:, 0] == 1.0).sum()) == round(alpha * 256)
     assert len(rewards) == 256 - round(alpha * 256)
@@ -624,6 +648,7 @@ SMOKE = {
     "no-adaptation": ["--no-adaptation"],
     "on-policy-disc": ["--on-policy-disc"],
     "anneal": ["--alpha-anneal-steps", "500"],
+    "return-bonus": ["--return-bonus", "1"],
     "dac": ["--algo", "dac"],
     "td3": ["--algo", "td3"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py

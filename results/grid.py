@@ -59,6 +59,9 @@ GRIDS = {
     # a candidate default: a longer horizon (gamma 0.995), so that a fall ~130 steps ahead weighs on Q
     "learning-gamma": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                            {"sail-gamma0.995": ("sail.py", [*OFF_POLICY, "--gamma", "0.995"])}, [1, 2, 3]),
+    # a candidate: IRCR's guidance reward (each step credited with its episode's scaled return) added to D's
+    "learning-return": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                            {"sail-return1": ("sail.py", [*OFF_POLICY, "--return-bonus", "1"])}, [1, 2, 3]),
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
                        {"sail-4demos": ("sail.py", [*OFF_POLICY, "--num-demos", "4"]),
