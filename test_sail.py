@@ -593,7 +593,7 @@ def test_auto_kernels_choose_without_touching_the_run_rng_and_keep_the_networks_
 import csv  # noqa: E402
 import json  # noqa: E402
 
-from sail import CSV_COLUMNS, Discriminator, discriminator_loss, shaped_reward  # noqa: E402
+from sail import CSV_COLUMNS, Discriminator, discriminator_loss, shaped_reward, td3_update  # noqa: E402
 
 TINY = ["--hidden", "32", "32", "--disc-hidden", "32", "32", "--threads", "1", "--eval-episodes", "1"]
 
@@ -653,6 +653,23 @@ SMOKE = {
     "td3": ["--algo", "td3"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
 }
+
+
+def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
+    import argparse
+    agent = TD3(obs_dim=3, act_dim=2, action_low=-np.ones(2), action_high=np.ones(2), hidden=(16, 16))
+    disc = Discriminator(3, 2, [16])
+    self_buffer = ReplayBuffer(obs_dim=3, act_dim=2, capacity=100)
+    for i in range(40):
+        self_buffer.add(np.full(3, i), np.zeros(2), 0.0, np.full(3, i + 1), 0.0)
+    self_buffer.end_episode(0, 7.0)
+    means = {}
+    for bonus in (0.0, 2.0):
+        torch.manual_seed(0)  # the same batch both times: the bonus draws no extra samples here
+        args = argparse.Namespace(batch_size=64, reward="sail", return_bonus=bonus, absorbing=False)
+        means[bonus] = float(td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args,
+                                        return_range=(2.0, 12.0))["reward_mean"])
+    assert means[2.0] - means[0.0] == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-5)
 
 
 def test_deploy_target_changes_what_is_scored_and_saved_not_what_is_learned(tmp_path, poor_hopper_demos):
