@@ -33,13 +33,15 @@ from envs import EnvState, make_env, rollout
 from plumbing import ConfigError
 from td3 import TD3
 
-# teacher return bands (low, high) at the paper's teacher quality
+# teacher return bands (low, high) at the paper's teacher quality, except Ant-v5: there an Ant that
+# stands still scores about 980 (a healthy reward of 1 per step), so the paper's ~1130 admits
+# teachers that barely walk; from 1200 up the teacher walks forward
 BANDS = {
     "Hopper-v5": (1000, 1500),
     "Walker2d-v5": (1000, 1700),
     "HalfCheetah-v5": (4000, 6000),
     "Swimmer-v5": (40, 120),
-    "Ant-v5": (800, 1200),
+    "Ant-v5": (1200, 1800),
 }
 
 
