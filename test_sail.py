@@ -1085,6 +1085,8 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
                                                                          "Hopper-v5-ablations.png", "Hopper-v5.png"]
     from plot import method_name
     assert method_name({"algo": "gail", "gamma": 0.995}) == "GAIL"  # gail.py's own default, not a variant
+    assert method_name({"algo": "sail", "return_bonus": 1.0}) == "SAIL (return bonus 1)"
+    assert method_name({"algo": "sail", "return_bonus": 0.0, "gamma": 0.99}) == "SAIL"
 
 
 # ---------------------------------------------------------------------------------------------
