@@ -69,6 +69,11 @@ class ReplayBuffer:
         self.episode_returns[torch.arange(start, start + (self.ptr - start) % self.capacity) % self.capacity] = \
             float(episodic_return)
 
+    def sorted_episode_returns(self):
+        """The episodic returns of the finished transitions, one per transition, sorted ascending."""
+        returns = self.episode_returns[:self.size]
+        return returns[~returns.isnan()].sort().values
+
     def sample_recent(self, batch_size, window):
         """Uniform batch from the `window` most recent transitions (on-policy ablation)."""
         window = min(window, self.size)

@@ -58,7 +58,8 @@ def parse_args():
 
 # learner settings tried as variants of sail.py's runs (sail, dac, td3), with sail.py's defaults:
 # a run that changed one is not pooled with the others
-VARIANTS = (("gamma", "gamma", 0.99), ("return_bonus", "return bonus", 0.0))  # flag, name, default
+VARIANTS = (("gamma", "gamma", 0.99), ("return_bonus", "return bonus", 0.0),  # flag, name, default
+            ("return_scale", "return scale", "minmax"))
 
 
 def method_name(config):
@@ -68,7 +69,8 @@ def method_name(config):
                                      ("no_lfd", "no LfD"), ("on_policy_disc", "on-policy D"))
              if config.get(flag) and not (config["algo"] in ("dac", "td3") and flag in ("no_adaptation", "no_lfd"))]
     if config["algo"] in ("sail", "dac", "td3"):  # gail.py and bc.py have defaults of their own
-        flags += [f"{name} {config[key]:g}" for key, name, default in VARIANTS if config.get(key, default) != default]
+        flags += [f"{name} {config[key]:g}" if isinstance(default, float) else f"{name} {config[key]}"
+                  for key, name, default in VARIANTS if config.get(key, default) != default]
     name = {"sail": "SAIL", "dac": "DAC", "td3": "TD3 (sparse)", "bc": "BC", "gail": "GAIL", "pofd": "POfD"}[config["algo"]]
     return f"{name} ({', '.join(flags)})" if flags else name
 

@@ -114,6 +114,9 @@ def parse_args(argv=None):
     g.add_argument("--return-bonus", type=non_negative_float, default=0.0, help="adds this weight times the "
                    "episodic return of the transition's episode, scaled to [0, 1] by the lowest and highest "
                    "returns seen, to the critic reward (IRCR's guidance reward); 0: off, the paper's SAIL")
+    g.add_argument("--return-scale", choices=["minmax", "rank"], default="minmax", help="how --return-bonus "
+                   "scales an episodic return to [0, 1]: minmax = between the lowest and highest returns seen "
+                   "(IRCR); rank = the share of R_B's finished transitions whose episode scored no higher")
     g.add_argument("--time-feature", action=argparse.BooleanOptionalAction, default=True, help="append 1 - t/T to obs")
     g.add_argument("--absorbing", action=argparse.BooleanOptionalAction, default=False, help="DAC absorbing states")
 
@@ -258,7 +261,17 @@ def train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args)
     return {"disc_loss": loss.detach(), "disc_teacher": d_teacher.detach(), "disc_self": d_self.detach()}
 
 
-def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_range=None):
+def scale_returns(returns, kind, return_range, sorted_returns):
+    """Episodic returns mapped to [0, 1] for --return-bonus. minmax: by the lowest and highest
+    returns seen, as IRCR. rank: by the share of R_B's finished transitions whose episode scored
+    no higher (`sorted_returns`), which a few very bad early episodes cannot flatten."""
+    if kind == "rank":
+        return torch.searchsorted(sorted_returns, returns, right=True) / len(sorted_returns)
+    low, high = return_range
+    return (returns - low) / max(high - low, 1e-8)
+
+
+def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_range=None, sorted_returns=None):
     """Eqs. (7) and (8): one TD3 step on a batch from alpha R_E + (1 - alpha) R_B, rewarded by D."""
     batch, env_rewards, episode_returns = mixed_batch(teacher_buffer, self_buffer, args.batch_size, alpha,
                                                       with_returns=args.return_bonus > 0)
@@ -270,8 +283,8 @@ def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_ran
     if args.return_bonus > 0:
         # IRCR (Gangwani et al. 2020): every step of an episode is credited with the episode's
         # return, so the critic learns which actions lead to better episodes, beyond imitating R_E
-        low, high = return_range
-        rewards = rewards + args.return_bonus * (episode_returns.to(agent.device) - low) / max(high - low, 1e-8)
+        rewards = rewards + args.return_bonus * scale_returns(episode_returns.to(agent.device), args.return_scale,
+                                                              return_range, sorted_returns)
     # DAC: the absorbing state's only action is zero (as the agent and the demos act there, and as
     # in DAC's code). With the actor's action instead, the critic is asked for Q at actions it never
     # saw in that state, the actor pushes them up, and the self-loop multiplies that by 1/(1 - gamma).
@@ -347,6 +360,8 @@ def train(args):
             run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(
                 args.env, args.algo, args.seed), config)
         cpu_kernels.apply(s.kernels, [*agent.networks(), disc])
+        ranked = args.return_bonus > 0 and args.return_scale == "rank"  # kept sorted, for scale_returns
+        sorted_returns = self_buffer.sorted_episode_returns().to(device) if ranked else None
 
         def count_time():  # training seconds since the last call (evaluations are not counted)
             nonlocal clock
@@ -385,6 +400,8 @@ def train(args):
             if terminated or truncated:
                 s.train_episodic_return = float(info["episode"]["r"])
                 self_buffer.end_episode(s.episode_start, s.train_episodic_return)
+                if ranked:
+                    sorted_returns = self_buffer.sorted_episode_returns().to(device)
                 s.return_range = (min(s.return_range[0], s.train_episodic_return),
                                   max(s.return_range[1], s.train_episodic_return))
                 if not args.no_adaptation:
@@ -410,7 +427,7 @@ def train(args):
                 if s.global_step % args.update_every == 0:
                     for _ in range(args.update_every):
                         stats.update(td3_update(agent, disc, teacher_buffer, self_buffer, s.alpha, args,
-                                                s.return_range))
+                                                s.return_range, sorted_returns))
                     bad = {k: float(v) for k, v in stats.items() if not math.isfinite(float(v))}
                     if bad:  # stop before a diverged actor acts in the env; the last checkpoint stays good
                         bar.close()

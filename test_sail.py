@@ -593,7 +593,7 @@ def test_auto_kernels_choose_without_touching_the_run_rng_and_keep_the_networks_
 import csv  # noqa: E402
 import json  # noqa: E402
 
-from sail import CSV_COLUMNS, Discriminator, discriminator_loss, shaped_reward, td3_update  # noqa: E402
+from sail import CSV_COLUMNS, Discriminator, discriminator_loss, scale_returns, shaped_reward, td3_update  # noqa: E402
 
 TINY = ["--hidden", "32", "32", "--disc-hidden", "32", "32", "--threads", "1", "--eval-episodes", "1"]
 
@@ -649,6 +649,7 @@ SMOKE = {
     "on-policy-disc": ["--on-policy-disc"],
     "anneal": ["--alpha-anneal-steps", "500"],
     "return-bonus": ["--return-bonus", "1"],
+    "return-rank": ["--return-bonus", "1", "--return-scale", "rank"],
     "dac": ["--algo", "dac"],
     "td3": ["--algo", "td3"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
@@ -666,10 +667,28 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
     means = {}
     for bonus in (0.0, 2.0):
         torch.manual_seed(0)  # the same batch both times: the bonus draws no extra samples here
-        args = argparse.Namespace(batch_size=64, reward="sail", return_bonus=bonus, absorbing=False)
+        args = argparse.Namespace(batch_size=64, reward="sail", return_bonus=bonus, return_scale="minmax",
+                                  absorbing=False)
         means[bonus] = float(td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args,
                                         return_range=(2.0, 12.0))["reward_mean"])
     assert means[2.0] - means[0.0] == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-5)
+
+
+def test_return_scale_rank_is_the_share_of_finished_transitions_that_scored_no_higher():
+    self_buffer = ReplayBuffer(obs_dim=1, act_dim=1, capacity=100)
+    for length, episodic_return in ((10, 5.0), (30, -900.0), (20, 6.0), (5, float("nan"))):  # the last one runs
+        start = self_buffer.ptr
+        for _ in range(length):
+            self_buffer.add(np.zeros(1), np.zeros(1), 0.0, np.zeros(1), 0.0)
+        if episodic_return == episodic_return:
+            self_buffer.end_episode(start, episodic_return)
+    ranked = self_buffer.sorted_episode_returns()
+    assert ranked.tolist() == sorted([5.0] * 10 + [-900.0] * 30 + [6.0] * 20)
+    returns = torch.tensor([-900.0, 5.0, 6.0, 7.0, -1000.0])
+    assert scale_returns(returns, "rank", None, ranked).tolist() == pytest.approx([0.5, 40 / 60, 1.0, 1.0, 0.0])
+    # minmax: one very bad episode squeezes the good ones together; rank keeps them apart
+    minmax = scale_returns(returns, "minmax", (-900.0, 6.0), None)
+    assert float(minmax[2] - minmax[1]) == pytest.approx(1 / 906, abs=1e-6)
 
 
 def test_deploy_target_changes_what_is_scored_and_saved_not_what_is_learned(tmp_path, poor_hopper_demos):
@@ -1086,6 +1105,8 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
     from plot import method_name
     assert method_name({"algo": "gail", "gamma": 0.995}) == "GAIL"  # gail.py's own default, not a variant
     assert method_name({"algo": "sail", "return_bonus": 1.0}) == "SAIL (return bonus 1)"
+    assert method_name({"algo": "sail", "return_bonus": 1.0, "return_scale": "rank"}) == \
+        "SAIL (return bonus 1, return scale rank)"
     assert method_name({"algo": "sail", "return_bonus": 0.0, "gamma": 0.99}) == "SAIL"
 
 

@@ -62,6 +62,10 @@ GRIDS = {
     # a candidate: IRCR's guidance reward (each step credited with its episode's scaled return) added to D's
     "learning-return": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                             {"sail-return1": ("sail.py", [*OFF_POLICY, "--return-bonus", "1"])}, [1, 2, 3]),
+    # the same bonus with each return scaled by its rank among R_B's (a percentile), not by the lowest and highest
+    "learning-return-rank": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                                 {"sail-return1-rank": ("sail.py", [*OFF_POLICY, "--return-bonus", "1",
+                                                                    "--return-scale", "rank"])}, [1, 2, 3]),
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
                        {"sail-4demos": ("sail.py", [*OFF_POLICY, "--num-demos", "4"]),
