@@ -188,6 +188,7 @@ def updates_on_random_data(args, obs_dim, act_dim):
     for t, v in zip(self_buffer.tensors(), data):
         t.copy_(torch.from_numpy(v))
     self_buffer.size = n
+    self_buffer.episode_returns[:n] = torch.randn(n // 1000).repeat_interleave(1000)  # for the return bonus
     teacher_buffer = TeacherBuffer(10_000)
     teacher_buffer.add_episode(0.0, *(torch.from_numpy(data[i][:1000]) for i in (0, 1, 3, 4)))
 
@@ -200,7 +201,7 @@ def updates_on_random_data(args, obs_dim, act_dim):
         def update():
             if agent.num_updates % sargs.disc_freq == 0:  # D is trained every --disc-freq env steps
                 sail.train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, sargs)
-            sail.td3_update(agent, disc, teacher_buffer, self_buffer, 0.5, sargs)
+            sail.td3_update(agent, disc, teacher_buffer, self_buffer, 0.5, sargs, (-3.0, 3.0))
         return agent, disc, update
 
     kinds = ["torch", "onednn"] if cpu_kernels.AVAILABLE else ["torch"]
@@ -268,6 +269,7 @@ buffer = sail.ReplayBuffer(obs_dim, act_dim, args.buffer_size)
 for t in buffer.tensors():
     t.normal_()
 buffer.size = args.buffer_size
+buffer.episode_returns.copy_(sail.torch.randn(args.buffer_size // 1000).repeat_interleave(1000))
 teacher = sail.TeacherBuffer(args.teacher_capacity)
 teacher.add_episode(0.0, *(t[:10_000] for t in (buffer.obs, buffer.actions, buffer.next_obs, buffer.terminated)))
 agent = sail.TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high)
@@ -275,7 +277,7 @@ disc = sail.Discriminator(obs_dim, act_dim, args.disc_hidden)
 disc_optimizer = sail.make_adam(disc.parameters(), args.disc_lr)
 sail.train_discriminator(disc, disc_optimizer, teacher, buffer, args)
 for _ in range(100):
-    sail.td3_update(agent, disc, teacher, buffer, 0.5, args)
+    sail.td3_update(agent, disc, teacher, buffer, 0.5, args, (-3.0, 3.0))
 run_dir = sail.plumbing.make_run_dir(args.output_dir, "memory", {{}})
 state = {{"global_step": 10**6, "rows": [], "train_time": 0.0}}
 sail.plumbing.save_checkpoint(run_dir + "/checkpoint.pt", {{"agent": agent, "disc": disc,

@@ -18,6 +18,7 @@ early phase (evaluations up to --early-steps, averaged over seeds).
 """
 
 import csv
+import functools
 import glob
 import json
 import os
@@ -56,10 +57,17 @@ def parse_args():
     return args
 
 
-# learner settings tried as variants of sail.py's runs (sail, dac, td3), with sail.py's defaults:
-# a run that changed one is not pooled with the others
-VARIANTS = (("gamma", "gamma", 0.99), ("return_bonus", "return bonus", 0.0),  # flag, name, default
-            ("return_scale", "return scale", "minmax"))
+# learner settings tried as variants of sail.py's runs (sail, dac, td3): a run whose setting is not
+# its preset's default (sail.py today) is not pooled with the others. Flag, name, and the value of
+# the runs made before the flag existed (the return bonus was off then).
+VARIANTS = (("gamma", "gamma", 0.99), ("return_bonus", "return bonus", 0.0), ("return_scale", "return scale", "minmax"))
+
+
+@functools.cache
+def preset_defaults(algo):
+    """sail.py's default flags under --algo `algo`."""
+    from sail import parse_args
+    return vars(parse_args(["--algo", algo]))
 
 
 def method_name(config):
@@ -69,8 +77,9 @@ def method_name(config):
                                      ("no_lfd", "no LfD"), ("on_policy_disc", "on-policy D"))
              if config.get(flag) and not (config["algo"] in ("dac", "td3") and flag in ("no_adaptation", "no_lfd"))]
     if config["algo"] in ("sail", "dac", "td3"):  # gail.py and bc.py have defaults of their own
-        flags += [f"{name} {config[key]:g}" if isinstance(default, float) else f"{name} {config[key]}"
-                  for key, name, default in VARIANTS if config.get(key, default) != default]
+        defaults = preset_defaults(config["algo"])
+        flags += [f"{name} {value:g}" if isinstance(value, float) else f"{name} {value}"
+                  for key, name, before in VARIANTS if (value := config.get(key, before)) != defaults[key]]
     name = {"sail": "SAIL", "dac": "DAC", "td3": "TD3 (sparse)", "bc": "BC", "gail": "GAIL", "pofd": "POfD"}[config["algo"]]
     return f"{name} ({', '.join(flags)})" if flags else name
 
@@ -110,6 +119,7 @@ def summarise(runs, teacher, last, early_steps):
 
 # claims 4 and 5, and the learner variants: drawn with SAIL, apart from the baselines
 ABLATIONS = ("fixed alpha", "no LfD", "on-policy D", *(name for _, name, _ in VARIANTS))
+PAPER_SAIL = "SAIL (return bonus 0)"  # drawn with both
 
 
 def plot_env(env_id, num_demos, methods, teacher, path, colors):
@@ -178,7 +188,7 @@ def main():
         lines.append("")
         colors = {method: f"C{i}" for i, method in enumerate(sorted(methods))}  # the same in both figures
         ablations = {m: runs for m, runs in methods.items() if m == "SAIL" or any(a in m for a in ABLATIONS)}
-        baselines = {m: runs for m, runs in methods.items() if not any(a in m for a in ABLATIONS)}
+        baselines = {m: runs for m, runs in methods.items() if m == PAPER_SAIL or not any(a in m for a in ABLATIONS)}
         try:
             plot_env(env_id, num_demos, baselines, teacher, os.path.join(args.output_dir, f"{name}.png"), colors)
             if len(ablations) > 1:

@@ -253,9 +253,10 @@ def read_config(run_dir):
         raise ConfigError(f"cannot read {path}: {first_line(e)}") from None
 
 
-def resume_config(run_dir, args, given, changeable):
+def resume_config(run_dir, args, given, changeable, predating=None):
     """The saved run's flags, with the `changeable` ones taken anew where given on the command
-    line. Any other flag given is a ConfigError: a resumed run cannot honour it."""
+    line. Any other flag given is a ConfigError: a resumed run cannot honour it. A flag the
+    saved config lacks (the run predates it) takes its value from `predating`, else the default."""
     path = os.path.join(run_dir, "config.json")
     if not os.path.isfile(path):
         raise ConfigError(f"--resume {run_dir}: no config.json there (not a run folder)")
@@ -268,6 +269,7 @@ def resume_config(run_dir, args, given, changeable):
         allowed = ", ".join("--" + name.replace("_", "-") for name in changeable)
         raise ConfigError(f"--resume keeps the run's saved flags; {flags} cannot change (only {allowed} can)")
     saved = {k: v for k, v in vars(read_config(run_dir)).items() if k in vars(args)}  # the command line, the given set: not flags
+    saved = (predating or {}) | saved
     for name in changeable:
         if name in given:
             saved[name] = getattr(args, name)

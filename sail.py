@@ -14,11 +14,19 @@ Algorithm 1 of the paper, as the loop in `train` runs it:
         update the discriminator D by Eq. (4): teacher R_E labelled 1, R_B labelled 0
         update the critic by Eq. (7) and the actor by Eq. (8), on batches drawn from
             alpha R_E + (1 - alpha) R_B, with the reward r'(s, a) = -log(1 - D(s, a))
+            plus beta times the scaled return of the transition's episode (see below)
 
 Equation numbers are the paper's: (4) the discriminator objective, (7) the critic's squared TD
 error and (8) the deterministic policy gradient on the mixed batch. The paper's ablations are
 flags (--fixed-alpha, --no-lfd, --no-adaptation, --on-policy-disc); DAC and TD3 on the sparse
 reward are presets of the same loop (--algo dac, td3); behaviour cloning is bc.py.
+
+One addition to the paper, on by default: the return bonus (--return-bonus, beta = 1). D's
+reward only says "look like R_E", so once the agent does, only a lucky noisy episode that
+beats R_E's worst moves it on. The bonus credits every transition with its episode's return
+scaled to [0, 1] (IRCR's guidance reward, Gangwani et al. 2020), which tells the critic which
+of the agent's own episodes were better. It uses only what the sparse env gives at an episode's
+end. --return-bonus 0 is the paper's SAIL; README's Results compare the two.
 """
 
 import signal
@@ -51,9 +59,10 @@ from td3 import TD3, make_adam, mlp
 PRESETS = {
     "sail": {},
     # DAC (Kostrikov et al. 2019): absorbing states, AIRL-style reward, no mixing, no adaptation
-    "dac": {"absorbing": True, "time_feature": False, "reward": "airl", "no_lfd": True, "no_adaptation": True},
+    "dac": {"absorbing": True, "time_feature": False, "reward": "airl", "no_lfd": True, "no_adaptation": True,
+            "return_bonus": 0.0},
     # TD3 on the sparse episodic reward alone: no demos, no discriminator
-    "td3": {"reward": "env", "no_lfd": True, "no_adaptation": True},
+    "td3": {"reward": "env", "no_lfd": True, "no_adaptation": True, "return_bonus": 0.0},
 }
 CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "eval_return_actor", "eval_return_target",
                "train_episodic_return", "teacher_threshold", "teacher_episodes", "promotions", "alpha", "disc_loss",
@@ -61,6 +70,7 @@ CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "
                "steps_per_second", "time"]
 # what --resume RUN_DIR may change; every other flag is the saved run's
 RESUMABLE = ("total_timesteps", "threads", "device")
+PREDATING = {"return_bonus": 0.0}  # a run saved before the return bonus existed (or became the default) ran without
 
 
 def parse_args(argv=None):
@@ -111,9 +121,9 @@ def parse_args(argv=None):
                    help="env steps between groups of as many TD3 updates (authors: 1000)")
     g.add_argument("--reward", choices=["sail", "airl", "env"], default="sail",
                    help="critic reward: sail = -log(1-D), airl = log D - log(1-D), env = sparse env reward")
-    g.add_argument("--return-bonus", type=non_negative_float, default=0.0, help="adds this weight times the "
-                   "episodic return of the transition's episode, scaled to [0, 1] by the lowest and highest "
-                   "returns seen, to the critic reward (IRCR's guidance reward); 0: off, the paper's SAIL")
+    g.add_argument("--return-bonus", type=non_negative_float, default=1.0, help="adds this weight times the "
+                   "episodic return of the transition's episode, scaled to [0, 1] (--return-scale), to the "
+                   "critic reward (IRCR's guidance reward); 0: off, the paper's SAIL (dac, td3: 0)")
     g.add_argument("--return-scale", choices=["minmax", "rank"], default="minmax", help="how --return-bonus "
                    "scales an episodic return to [0, 1]: minmax = between the lowest and highest returns seen "
                    "(IRCR); rank = the share of R_B's finished transitions whose episode scored no higher")
@@ -313,7 +323,7 @@ class LoopState:
 
 def train(args):
     if args.resume:
-        args = plumbing.resume_config(args.resume, args, args.given, RESUMABLE)
+        args = plumbing.resume_config(args.resume, args, args.given, RESUMABLE, PREDATING)
     device = torch.device("cuda" if args.device == "cuda" or (args.device == "auto" and torch.cuda.is_available())
                           else "cpu")
     torch.set_num_threads(args.threads)

@@ -648,8 +648,8 @@ SMOKE = {
     "no-adaptation": ["--no-adaptation"],
     "on-policy-disc": ["--on-policy-disc"],
     "anneal": ["--alpha-anneal-steps", "500"],
-    "return-bonus": ["--return-bonus", "1"],
-    "return-rank": ["--return-bonus", "1", "--return-scale", "rank"],
+    "no-return-bonus": ["--return-bonus", "0"],
+    "return-rank": ["--return-scale", "rank"],
     "dac": ["--algo", "dac"],
     "td3": ["--algo", "td3"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
@@ -1028,6 +1028,23 @@ def test_resume_takes_flags_given_with_their_default_values(tmp_path):
     assert (resumed.total_timesteps, resumed.threads, resumed.eval_freq) == (1_000_000, 2, 200)
 
 
+def test_resuming_a_run_saved_before_the_return_bonus_keeps_it_off(tmp_path):
+    import plumbing
+    import sail
+    run = tmp_path / "run"
+    run.mkdir()
+    saved = vars(sail.parse_args(["--total-timesteps", "600", "--eval-freq", "200"]))
+    old = {k: v for k, v in saved.items() if k not in ("given", "return_bonus", "return_scale")}
+    (run / "config.json").write_text(json.dumps(old))
+    (run / "checkpoint.pt").write_bytes(b"")
+    args = sail.parse_args(["--resume", str(run)])
+    assert args.return_bonus == 1.0  # today's default
+    resumed = plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, sail.PREDATING)
+    assert (resumed.return_bonus, resumed.return_scale) == (0.0, "minmax")
+    (run / "config.json").write_text(json.dumps(old | {"return_bonus": 2.0}))
+    assert plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, sail.PREDATING).return_bonus == 2.0
+
+
 def test_loading_refuses_a_file_that_would_run_code(tmp_path, poor_hopper_demos, straight_run):
     """Checkpoints and model files are read with torch's weights-only unpickler: a shared file
     whose unpickling would run a command is refused with one line, and the command never runs."""
@@ -1072,7 +1089,7 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
         run = tmp_path / f"Hopper-v5__sail-{num_demos}-{gamma}__{seed}"
         run.mkdir()
         config = {"env": "Hopper-v5", "algo": "sail", "seed": seed, "num_demos": num_demos, "demos": None,
-                  "gamma": gamma}
+                  "gamma": gamma, "return_bonus": 1.0}
         (run / "config.json").write_text(json.dumps(config))
         rows = [{k: "nan" for k in CSV_COLUMNS} | {"global_step": 10_000 * (i + 1), "eval_return": r,
                                                     "promotions": int(seed == 1 and i >= 2)}
@@ -1104,10 +1121,11 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
                                                                          "Hopper-v5-ablations.png", "Hopper-v5.png"]
     from plot import method_name
     assert method_name({"algo": "gail", "gamma": 0.995}) == "GAIL"  # gail.py's own default, not a variant
-    assert method_name({"algo": "sail", "return_bonus": 1.0}) == "SAIL (return bonus 1)"
-    assert method_name({"algo": "sail", "return_bonus": 1.0, "return_scale": "rank"}) == \
-        "SAIL (return bonus 1, return scale rank)"
-    assert method_name({"algo": "sail", "return_bonus": 0.0, "gamma": 0.99}) == "SAIL"
+    assert method_name({"algo": "sail", "return_bonus": 1.0}) == "SAIL"
+    assert method_name({"algo": "sail", "return_bonus": 1.0, "return_scale": "rank"}) == "SAIL (return scale rank)"
+    assert method_name({"algo": "sail", "return_bonus": 0.0, "gamma": 0.99}) == "SAIL (return bonus 0)"
+    assert method_name({"algo": "sail", "no_lfd": True}) == "SAIL (no LfD, return bonus 0)"  # made before the bonus
+    assert method_name({"algo": "dac"}) == method_name({"algo": "dac", "return_bonus": 0.0}) == "DAC"
 
 
 # ---------------------------------------------------------------------------------------------
