@@ -1266,3 +1266,15 @@ def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path, c
     proc = run_script(grid, "run", str(tmp_path / "other"), "r", "sail.py", *flags)
     assert proc.returncode == 0 and "--resume" in proc.stdout
     assert [int(r["global_step"]) for r in read_csv(tmp_path / "other" / "r")] == [200, 400]
+
+
+def test_bench_times_every_part_with_sail_defaults():
+    """bench.py drives sail.py's update and loop directly, so a change of sail.py's defaults (the
+    return bonus needs episode returns in the buffers) must keep it running end to end."""
+    proc = run_script("bench.py", "--threads", "1", "--hidden", "16", "--updates", "30", "--env-steps", "400",
+                      "--warmup", "400", "--skip-memory")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stdout.splitlines()
+    assert lines[1].startswith("CPU: ")
+    for part in ("1. ", "2. updates/s", "3. env steps/s"):
+        assert any(line.startswith(part) for line in lines), proc.stdout
