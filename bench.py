@@ -269,7 +269,7 @@ buffer = sail.ReplayBuffer(obs_dim, act_dim, args.buffer_size)
 for t in buffer.tensors():
     t.normal_()
 buffer.size = args.buffer_size
-buffer.episode_returns.copy_(sail.torch.randn(args.buffer_size // 1000).repeat_interleave(1000))
+buffer.episode_returns.copy_(torch.randn(args.buffer_size // 1000).repeat_interleave(1000))
 teacher = sail.TeacherBuffer(args.teacher_capacity)
 teacher.add_episode(0.0, *(t[:10_000] for t in (buffer.obs, buffer.actions, buffer.next_obs, buffer.terminated)))
 agent = sail.TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high)
