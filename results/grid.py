@@ -69,6 +69,11 @@ GRIDS = {
     # deterministic policy does and can beat the promotion bar (Ant-v5 noisy episodes never did)
     "learning-noise0": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                             {"sail-noise0": ("sail.py", [*SAIL[1], "--exploration-noise", "0"])}, [1, 2, 3]),
+    # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
+    # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
+    "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
+                 {"sail-return1-1M": ("sail.py", ["--total-timesteps", "1000000", *OFF_POLICY[2:], "--return-bonus", "1"])},
+                 [1, 2, 3]),
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
                        {"sail-4demos": ("sail.py", [*PAPER, "--num-demos", "4"]),
