@@ -57,10 +57,13 @@ def parse_args():
     return args
 
 
-# learner settings tried as variants of sail.py's runs (sail, dac, td3): a run whose setting is not
-# its preset's default (sail.py today) is not pooled with the others. Flag, name, and the value of
-# the runs made before the flag existed (the return bonus was off then).
-VARIANTS = (("gamma", "gamma", 0.99), ("return_bonus", "return bonus", 0.0), ("return_scale", "return scale", "minmax"))
+# sail.py flags that say how a run was set up, measured or stored, not what it learned: runs that
+# differ only in these are seeds of one method (1 and 4 teacher episodes are kept apart by env)
+SETUP_FLAGS = {"env", "algo", "seed", "total_timesteps", "eval_freq", "eval_episodes", "demos", "num_demos", "device",
+               "threads", "kernels", "output_dir", "run_name", "save_model", "tensorboard", "resume", "checkpoint_freq",
+               "evaluate", "video", "given"}
+ABLATION_FLAGS = {"no_adaptation": "no adaptation", "fixed_alpha": "fixed alpha", "no_lfd": "no LfD",
+                  "on_policy_disc": "on-policy D"}  # the paper's names
 
 
 @functools.cache
@@ -70,16 +73,27 @@ def preset_defaults(algo):
     return vars(parse_args(["--algo", algo]))
 
 
+def setting(key, value):
+    """A learner flag and its value as words: "gamma 0.995", "no time feature", "hidden 64 64"."""
+    name = key.replace("_", " ")
+    if isinstance(value, bool):
+        return name if value else f"no {name}"
+    if isinstance(value, list):
+        return f"{name} {' '.join(map(str, value))}"
+    return f"{name} {value:g}" if isinstance(value, float) else f"{name} {value}"
+
+
 def method_name(config):
-    """The paper's name of what a run trained: its --algo, plus the ablation flags it set and the
-    learner settings (VARIANTS) it changed."""
-    flags = [name for flag, name in (("no_adaptation", "no adaptation"), ("fixed_alpha", "fixed alpha"),
-                                     ("no_lfd", "no LfD"), ("on_policy_disc", "on-policy D"))
+    """The paper's name of what a run trained: its --algo, plus the ablation flags it set and every
+    other learner flag that differs from its preset's default in sail.py today (a flag missing from
+    an older run's config takes the value it had before the flag existed: sail.PREDATING)."""
+    flags = [name for flag, name in ABLATION_FLAGS.items()
              if config.get(flag) and not (config["algo"] in ("dac", "td3") and flag in ("no_adaptation", "no_lfd"))]
     if config["algo"] in ("sail", "dac", "td3"):  # gail.py and bc.py have defaults of their own
-        defaults = preset_defaults(config["algo"])
-        flags += [f"{name} {value:g}" if isinstance(value, float) else f"{name} {value}"
-                  for key, name, before in VARIANTS if (value := config.get(key, before)) != defaults[key]]
+        from sail import PREDATING
+        flags += [setting(key, value) for key, default in preset_defaults(config["algo"]).items()
+                  if key not in SETUP_FLAGS and key not in ABLATION_FLAGS
+                  and (value := config.get(key, PREDATING.get(key, default))) != default]
     name = {"sail": "SAIL", "dac": "DAC", "td3": "TD3 (sparse)", "bc": "BC", "gail": "GAIL", "pofd": "POfD"}[config["algo"]]
     return f"{name} ({', '.join(flags)})" if flags else name
 
@@ -117,8 +131,6 @@ def summarise(runs, teacher, last, early_steps):
             "reached teacher": when(reached), "first promotion": when(promoted), "early": f"{np.mean(early):.0f}"}
 
 
-# claims 4 and 5, and the learner variants: drawn with SAIL, apart from the baselines
-ABLATIONS = ("fixed alpha", "no LfD", "on-policy D", *(name for _, name, _ in VARIANTS))
 PAPER_SAIL = "SAIL (return bonus 0)"  # drawn with both
 
 
@@ -186,9 +198,12 @@ def main():
                 row |= {"env steps": "0", "reached teacher": "", "first promotion": "", "early": ""}
             lines.append("| " + " | ".join(str(row[c]) for c in columns) + " |")
         lines.append("")
-        colors = {method: f"C{i}" for i, method in enumerate(sorted(methods))}  # the same in both figures
-        ablations = {m: runs for m, runs in methods.items() if m == "SAIL" or any(a in m for a in ABLATIONS)}
-        baselines = {m: runs for m, runs in methods.items() if m == PAPER_SAIL or not any(a in m for a in ABLATIONS)}
+        # claims 4 and 5 and the learner variants (any method with a flag set) apart from the baselines
+        ablations = {m: runs for m, runs in methods.items() if m.startswith("SAIL")}
+        baselines = {m: runs for m, runs in methods.items() if m in ("SAIL", PAPER_SAIL) or m not in ablations}
+        colors = {"SAIL": "C0", PAPER_SAIL: "C1"}  # the two drawn in both figures keep their colours; the
+        for figure in (baselines, ablations):   # others take the next ones, so no two lines of a figure share one
+            colors |= {m: f"C{i}" for i, m in enumerate(sorted(set(figure) - set(colors)), start=2)}
         try:
             plot_env(env_id, num_demos, baselines, teacher, os.path.join(args.output_dir, f"{name}.png"), colors)
             if len(ablations) > 1:

@@ -1126,6 +1126,12 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
     assert method_name({"algo": "sail", "return_bonus": 0.0, "gamma": 0.99}) == "SAIL (return bonus 0)"
     assert method_name({"algo": "sail", "no_lfd": True}) == "SAIL (no LfD, return bonus 0)"  # made before the bonus
     assert method_name({"algo": "dac"}) == method_name({"algo": "dac", "return_bonus": 0.0}) == "DAC"
+    # any learner flag off its default names a variant; how a run was set up or stored does not
+    assert method_name({"algo": "sail", "return_bonus": 1.0, "exploration_noise": 0.0}) == "SAIL (exploration noise 0)"
+    assert method_name({"algo": "sail", "return_bonus": 1.0, "time_feature": False, "hidden": [64, 64]}) == \
+        "SAIL (hidden 64 64, no time feature)"
+    assert method_name({"algo": "sail", "return_bonus": 1.0, "seed": 3, "threads": 1, "total_timesteps": 5,
+                        "output_dir": "elsewhere", "checkpoint_freq": 7, "num_demos": 4}) == "SAIL"
 
 
 # ---------------------------------------------------------------------------------------------
