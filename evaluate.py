@@ -31,10 +31,12 @@ def deploys_target(args):
     return getattr(args, "deploy", "actor") == "target"
 
 
-def evaluate_run(run_dir, episodes, seed, threads, video=None):
+def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0):
     """Plays `episodes` episodes of RUN_DIR's saved actor (model.pt, else checkpoint.pt) on an env
     seeded with `seed`; prints the return and length of each, then their mean. With `video`
-    (a .gif or .mp4 path) the episodes are rendered headless into it, one after another."""
+    (a .gif or .mp4 path) the episodes are rendered headless into it, one after another. With
+    `noise`, the actor acts as in training (Gaussian noise of that std, seeded with `seed`): what
+    the promotion bar sees of it."""
     if video is not None:
         check_video_path(video)
         os.environ.setdefault("MUJOCO_GL", "egl")  # headless; MUJOCO_GL=osmesa where EGL is missing
@@ -60,10 +62,11 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None):
     except (RuntimeError, KeyError, TypeError) as e:  # config.json and the saved networks disagree (sizes, env)
         raise ConfigError(f"{path} does not fit {run_dir}/config.json: {plumbing.first_line(e)}") from None
     returns, frames, fps = [], [], env.metadata.get("render_fps", 30)
+    rng = np.random.default_rng(seed)
     for i in range(episodes):
         episode_frames = [] if video else None
         try:
-            episode = rollout(env, agent.act, episode_frames)
+            episode = rollout(env, agent.act if not noise else lambda o: agent.explore(o, noise, rng), episode_frames)
         except Exception as e:  # no OpenGL: EGL or OSMesa missing or broken
             if video is None:
                 raise
@@ -74,7 +77,7 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None):
         returns.append(episode["episodic_return"])
         print(f"episode {i + 1}: return {returns[-1]:.1f}, length {len(episode['actions'])}")
     print(f"{config.env}, {path}: mean return {np.mean(returns):.1f} +- {np.std(returns):.1f} "
-          f"over {len(returns)} episodes (env seed {seed})")
+          f"over {len(returns)} episodes (env seed {seed}{f', exploration noise {noise:g}' if noise else ''})")
     if video is not None:
         write_video(video, frames, fps)
         print(f"wrote {video}: {len(frames)} frames")

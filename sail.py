@@ -103,6 +103,8 @@ def parse_args(argv=None):
                    "saved actor (model.pt, else checkpoint.pt) on an env seeded with --seed")
     g.add_argument("--video", metavar="FILE", help="with --evaluate: render the episodes headless into FILE "
                    "(.gif, or .mp4 with imageio-ffmpeg)")
+    g.add_argument("--eval-noise", type=non_negative_float, default=0.0, help="with --evaluate: the std of "
+                   "Gaussian noise added to the actions, as --exploration-noise in training (0: deterministic)")
     g.add_argument("--deploy", choices=["actor", "target"], default="actor", help="the policy that eval_return "
                    "scores, model.pt holds and --evaluate plays: the actor or its Polyak-averaged target copy")
 
@@ -179,8 +181,8 @@ def check_args(p, args):
                 "the run would write no progress.csv")
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: no CUDA device is available")
-    if args.video and not args.evaluate:
-        p.error("--video goes with --evaluate RUN_DIR")
+    if (args.video or args.eval_noise) and not args.evaluate:
+        p.error(f"{'--video' if args.video else '--eval-noise'} goes with --evaluate RUN_DIR")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -481,7 +483,7 @@ def main(argv=None):
     args = parse_args(argv)
     if args.evaluate:
         return plumbing.run_main("sail.py", lambda a: evaluate_run(a.evaluate, a.eval_episodes, a.seed, a.threads,
-                                                                   a.video), args)
+                                                                   a.video, a.eval_noise), args)
     return plumbing.run_main("sail.py", train, args)
 
 

@@ -847,7 +847,14 @@ def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_result(tmp_path
 def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, straight_run):
     import shutil
     run = shutil.copytree(straight_run, tmp_path / "run")  # with model.pt (--save-model) and checkpoint.pt
-    from_model, = run_scripts(("sail.py", "--evaluate", str(run), "--eval-episodes", "3", "--seed", "7"))
+    noisy = ("sail.py", "--evaluate", str(run), "--eval-episodes", "3", "--seed", "7", "--eval-noise", "0.3")
+    from_model, noisy_a, noisy_b, noise_alone = run_scripts(
+        ("sail.py", "--evaluate", str(run), "--eval-episodes", "3", "--seed", "7"), noisy, noisy,
+        ("sail.py", "--env", "Hopper-v5", "--eval-noise", "0.1"))
+    # with noise: the actor as it acts in training, reproducible from --seed, and not the deterministic episodes
+    assert noisy_a.returncode == 0 and noisy_a.stdout == noisy_b.stdout, noisy_a.stderr[-3000:]
+    assert "exploration noise 0.3" in noisy_a.stdout and noisy_a.stdout.splitlines()[:3] != from_model.stdout.splitlines()[:3]
+    assert_one_line_error(noise_alone)  # --eval-noise needs --evaluate
     os.remove(run / "model.pt")  # the final checkpoint holds the same actor
     reader_gone = subprocess.Popen([sys.executable, "sail.py", "--evaluate", str(run)], cwd=HERE,
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
