@@ -61,7 +61,7 @@ def parse_args():
 # differ only in these are seeds of one method (1 and 4 teacher episodes are kept apart by env)
 SETUP_FLAGS = {"env", "algo", "seed", "total_timesteps", "eval_freq", "eval_episodes", "demos", "num_demos", "device",
                "threads", "kernels", "output_dir", "run_name", "save_model", "tensorboard", "resume", "checkpoint_freq",
-               "evaluate", "video", "given"}
+               "evaluate", "video", "eval_noise", "given"}
 ABLATION_FLAGS = {"no_adaptation": "no adaptation", "fixed_alpha": "fixed alpha", "no_lfd": "no LfD",
                   "on_policy_disc": "on-policy D"}  # the paper's names
 

@@ -72,7 +72,8 @@ GRIDS = {
     # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
-                 {"sail-return1-1M": ("sail.py", ["--total-timesteps", "1000000", *OFF_POLICY[2:], "--return-bonus", "1"])},
+                 {"sail-return1-1M": ("sail.py", ["--total-timesteps", "1000000", "--threads", "1",
+                                              "--checkpoint-freq", "10000", "--return-bonus", "1"])},
                  [1, 2, 3]),
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
