@@ -88,13 +88,13 @@ def method_name(config):
     other learner flag that differs from its preset's default in sail.py today (a flag missing from
     an older run's config takes the value it had before the flag existed: sail.PREDATING)."""
     flags = [name for flag, name in ABLATION_FLAGS.items()
-             if config.get(flag) and not (config["algo"] in ("dac", "td3") and flag in ("no_adaptation", "no_lfd"))]
-    if config["algo"] in ("sail", "dac", "td3"):  # gail.py and bc.py have defaults of their own
+             if config.get(flag) and not (config["algo"] in ("dac", "td3", "ircr") and flag in ("no_adaptation", "no_lfd"))]
+    if config["algo"] in ("sail", "dac", "td3", "ircr"):  # gail.py and bc.py have defaults of their own
         from sail import PREDATING
         flags += [setting(key, value) for key, default in preset_defaults(config["algo"]).items()
                   if key not in SETUP_FLAGS and key not in ABLATION_FLAGS
                   and (value := config.get(key, PREDATING.get(key, default))) != default]
-    name = {"sail": "SAIL", "dac": "DAC", "td3": "TD3 (sparse)", "bc": "BC", "gail": "GAIL", "pofd": "POfD"}[config["algo"]]
+    name = {"sail": "SAIL", "dac": "DAC", "td3": "TD3 (sparse)", "ircr": "IRCR", "bc": "BC", "gail": "GAIL", "pofd": "POfD"}[config["algo"]]
     return f"{name} ({', '.join(flags)})" if flags else name
 
 
@@ -178,7 +178,7 @@ def main():
             continue
         key = (config["env"], config.get("num_demos", 1))  # 1 and 4 teacher episodes: apart
         by_env[key][method_name(config)].append((run, rows))
-        if config["algo"] != "td3":
+        if config["algo"] not in ("td3", "ircr"):  # no teacher episodes used
             teachers[key] = teacher_return(config)
     os.makedirs(args.output_dir, exist_ok=True)
 

@@ -63,6 +63,9 @@ PRESETS = {
             "return_bonus": 0.0},
     # TD3 on the sparse episodic reward alone: no demos, no discriminator
     "td3": {"reward": "env", "no_lfd": True, "no_adaptation": True, "return_bonus": 0.0},
+    # IRCR (Gangwani et al. 2020): TD3 on the return bonus alone (each step credited with its episode's
+    # scaled return); no demos, no discriminator: what the bonus can learn without imitation
+    "ircr": {"reward": "none", "no_lfd": True, "no_adaptation": True},
 }
 CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "eval_return_actor", "eval_return_target",
                "train_episodic_return", "teacher_threshold", "teacher_episodes", "promotions", "alpha", "disc_loss",
@@ -121,8 +124,9 @@ def parse_args(argv=None):
     g.add_argument("--buffer-size", type=positive_int, default=1_000_000, help="capacity of R_B in transitions")
     g.add_argument("--update-every", type=positive_int, default=1,
                    help="env steps between groups of as many TD3 updates (authors: 1000)")
-    g.add_argument("--reward", choices=["sail", "airl", "env"], default="sail",
-                   help="critic reward: sail = -log(1-D), airl = log D - log(1-D), env = sparse env reward")
+    g.add_argument("--reward", choices=["sail", "airl", "env", "none"], default="sail",
+                   help="critic reward: sail = -log(1-D), airl = log D - log(1-D), env = sparse env reward, "
+                   "none = 0 (the return bonus alone)")
     g.add_argument("--return-bonus", type=non_negative_float, default=1.0, help="adds this weight times the "
                    "episodic return of the transition's episode, scaled to [0, 1] (--return-scale), to the "
                    "critic reward (IRCR's guidance reward); 0: off, the paper's SAIL (dac, td3: 0)")
@@ -172,8 +176,11 @@ def check_args(p, args):
         p.error(f"--alpha must be in [0, 1], got {args.alpha}")
     if not 0.0 < args.gamma <= 1.0:
         p.error(f"--gamma must be in (0, 1], got {args.gamma}")
-    if args.reward == "env" and not (args.no_lfd and args.no_adaptation):
-        p.error("--reward env learns without demos: it needs --no-lfd and --no-adaptation (or --algo td3)")
+    if args.reward in ("env", "none") and not (args.no_lfd and args.no_adaptation):
+        p.error(f"--reward {args.reward} learns without demos: it needs --no-lfd and --no-adaptation "
+                f"(or --algo {'td3' if args.reward == 'env' else 'ircr'})")
+    if args.reward == "none" and args.return_bonus <= 0:
+        p.error("--reward none leaves the critic only the return bonus: give --return-bonus > 0")
     if args.buffer_size < 1001:
         p.error("--buffer-size must hold at least one whole episode (1001 transitions)")
     if args.eval_freq > args.total_timesteps and not (args.resume or args.evaluate):
@@ -290,6 +297,8 @@ def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_ran
     obs, actions, next_obs, terminated = (x.to(agent.device) for x in batch)
     if args.reward == "env":  # the TD3-sparse baseline: the env's own (sparse episodic) reward
         rewards = env_rewards.to(agent.device)
+    elif args.reward == "none":  # IRCR: the return bonus below is the whole reward
+        rewards = torch.zeros_like(env_rewards, device=agent.device)
     else:
         rewards = shaped_reward(disc, obs, actions, args.reward)
     if args.return_bonus > 0:
@@ -337,7 +346,7 @@ def train(args):
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
 
     # R_E: the teacher's episodes (none for TD3 on the sparse reward)
-    use_demos = args.reward != "env"
+    use_demos = args.reward in ("sail", "airl")  # D's reward needs R_E; the env's and IRCR's do not
     teacher_buffer = (load_teacher_buffer(args.demos or default_demo_path(args.env), args.env, env, args.num_demos,
                                           args.teacher_capacity, args.time_feature, args.absorbing)
                       if use_demos else TeacherBuffer(args.teacher_capacity))
@@ -432,7 +441,7 @@ def train(args):
 
             if s.global_step >= args.learning_starts:
                 # 3. discriminator, Eq. (4): teacher samples vs the whole R_B (off-policy), or recent ones
-                if args.reward != "env" and (s.global_step - args.learning_starts) % args.disc_freq == 0:
+                if use_demos and (s.global_step - args.learning_starts) % args.disc_freq == 0:
                     stats.update(train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args))
 
                 # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)

@@ -652,6 +652,7 @@ SMOKE = {
     "return-rank": ["--return-scale", "rank"],
     "dac": ["--algo", "dac"],
     "td3": ["--algo", "td3"],
+    "ircr": ["--algo", "ircr"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
 }
 
@@ -672,6 +673,10 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
         means[bonus] = float(td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args,
                                         return_range=(2.0, 12.0))["reward_mean"])
     assert means[2.0] - means[0.0] == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-5)
+    # IRCR (--reward none): the bonus is the whole reward, D plays no part
+    args = argparse.Namespace(batch_size=64, reward="none", return_bonus=2.0, return_scale="minmax", absorbing=False)
+    ircr = td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
+    assert float(ircr["reward_mean"]) == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-6)
 
 
 def test_return_scale_rank_is_the_share_of_finished_transitions_that_scored_no_higher():
@@ -739,13 +744,13 @@ def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos
     assert [int(r["global_step"]) for r in rows] == [400, 800, 1200, 1600]
     assert int(rows[-1]["updates"]) == 601
     alphas = [float(r["alpha"]) for r in rows]
-    if name in ("no-lfd", "dac", "td3"):
+    if name in ("no-lfd", "dac", "td3", "ircr"):
         assert alphas == [0.0] * 4
     if name == "fixed-alpha":
         assert alphas == [0.5] * 4
-    if name in ("no-adaptation", "dac", "td3"):
+    if name in ("no-adaptation", "dac", "td3", "ircr"):
         assert all(int(r["promotions"]) == 0 for r in rows)
-    if name == "td3":
+    if name in ("td3", "ircr"):  # no discriminator trained
         assert all(r["disc_loss"] == "nan" for r in rows)
     else:
         assert 0.0 < float(rows[-1]["disc_teacher"]) < 1.0

@@ -69,6 +69,9 @@ GRIDS = {
     # deterministic policy does and can beat the promotion bar (Ant-v5 noisy episodes never did)
     "learning-noise0": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                             {"sail-noise0": ("sail.py", [*SAIL[1], "--exploration-noise", "0"])}, [1, 2, 3]),
+    # IRCR: the return bonus alone, without teacher or discriminator (what SAIL's imitation adds to it)
+    "learning-ircr": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                          {"ircr": ("sail.py", [*OFF_POLICY, "--algo", "ircr"])}, [1, 2, 3]),
     # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
