@@ -87,10 +87,12 @@ def method_name(config):
     """The paper's name of what a run trained: its --algo, plus the ablation flags it set and every
     other learner flag that differs from its preset's default in sail.py today (a flag missing from
     an older run's config takes the value it had before the flag existed: sail.PREDATING)."""
+    from sail import PREDATING, PRESETS
+    sail_run = config["algo"] in PRESETS  # gail.py and bc.py have defaults of their own
+    # an ablation flag that the run's preset sets (DAC's and TD3's no-lfd) is part of the method, not an ablation
     flags = [name for flag, name in ABLATION_FLAGS.items()
-             if config.get(flag) and not (config["algo"] in ("dac", "td3", "ircr") and flag in ("no_adaptation", "no_lfd"))]
-    if config["algo"] in ("sail", "dac", "td3", "ircr"):  # gail.py and bc.py have defaults of their own
-        from sail import PREDATING
+             if config.get(flag) and not (sail_run and preset_defaults(config["algo"])[flag])]
+    if sail_run:
         flags += [setting(key, value) for key, default in preset_defaults(config["algo"]).items()
                   if key not in SETUP_FLAGS and key not in ABLATION_FLAGS
                   and (value := config.get(key, PREDATING.get(key, default))) != default]
