@@ -38,6 +38,10 @@ class ReplayBuffer:
         # the episodic return of each transition's episode, NaN while that episode is running
         self.episode_returns = torch.full((self.capacity,), float("nan"))
         self._returns_view = self.episode_returns.numpy()
+        # where each finished transition's episode starts in the ring, and its length (for
+        # --return-decomposition, which samples steps of one episode together)
+        self.episode_starts = torch.zeros(self.capacity, dtype=torch.long)
+        self.episode_lengths = torch.zeros(self.capacity, dtype=torch.long)
 
     def tensors(self):
         return self.obs, self.actions, self.rewards, self.next_obs, self.terminated
@@ -52,13 +56,18 @@ class ReplayBuffer:
     def sample(self, batch_size, with_returns=False):
         """Uniform batch (obs, actions, rewards, next_obs, terminated) from the whole buffer; with
         `with_returns`, from the finished episodes only, and their episodic returns as well."""
-        idx = torch.randint(0, self.size, (batch_size,))
         if not with_returns:
-            return self.gather(idx)
+            return self.gather(torch.randint(0, self.size, (batch_size,)))
+        idx = self.finished_indices(batch_size)
+        return self.gather(idx), self.episode_returns[idx]
+
+    def finished_indices(self, n):
+        """n uniform indices of transitions whose episode has ended."""
+        idx = torch.randint(0, self.size, (n,))
         running = self.episode_returns[idx].isnan()
         for _ in range(1000):  # resample what fell in the running episode (usually a few of 256)
             if not running.any():
-                return self.gather(idx), self.episode_returns[idx]
+                return idx
             idx[running] = torch.randint(0, self.size, (int(running.sum()),))
             running = self.episode_returns[idx].isnan()
         raise ConfigError("no finished episode in the self buffer to sample from: raise --learning-starts above "
@@ -66,8 +75,27 @@ class ReplayBuffer:
 
     def end_episode(self, start, episodic_return):
         """Marks the transitions from index `start` up to the newest with their episode's return."""
-        self.episode_returns[torch.arange(start, start + (self.ptr - start) % self.capacity) % self.capacity] = \
-            float(episodic_return)
+        length = (self.ptr - start) % self.capacity
+        idx = torch.arange(start, start + length) % self.capacity
+        self.episode_returns[idx] = float(episodic_return)
+        self.episode_starts[idx], self.episode_lengths[idx] = start, length
+
+    def sample_episode_subsets(self, num_episodes, subset_size):
+        """For randomized return decomposition: `num_episodes` finished episodes (drawn in
+        proportion to their length) and `subset_size` distinct steps of each one, uniformly (all
+        of an episode's steps if it has fewer). Returns obs, actions, next_obs of shape
+        (num_episodes, subset_size, dim), a mask that is 0 where a column is padding or its step
+        was since overwritten by a newer episode, and each episode's return and length."""
+        anchors = self.finished_indices(num_episodes)
+        starts, lengths = self.episode_starts[anchors], self.episode_lengths[anchors]
+        # random keys sorted: the first subset_size positions are a uniform subset without replacement
+        positions = torch.arange(max(int(lengths.max()), subset_size))
+        keys = torch.rand(num_episodes, len(positions)).masked_fill(positions >= lengths[:, None], 2.0)
+        offsets = keys.argsort(dim=1)[:, :subset_size]
+        idx = (starts[:, None] + offsets) % self.capacity
+        mask = ((offsets < lengths[:, None]) & (self.episode_starts[idx] == starts[:, None])
+                & (self.episode_lengths[idx] == lengths[:, None]) & ~self.episode_returns[idx].isnan()).float()
+        return self.obs[idx], self.actions[idx], self.next_obs[idx], mask, self.episode_returns[anchors], lengths
 
     def sorted_episode_returns(self):
         """The episodic returns of the finished transitions, one per transition, sorted ascending."""
@@ -91,14 +119,17 @@ class ReplayBuffer:
 
     def state_dict(self):
         return {"size": self.size, "ptr": self.ptr, "data": [t[:self.size].clone() for t in self.tensors()],
-                "episode_returns": self.episode_returns[:self.size].clone()}
+                "episode_returns": self.episode_returns[:self.size].clone(),
+                "episode_starts": self.episode_starts[:self.size].clone(),
+                "episode_lengths": self.episode_lengths[:self.size].clone()}
 
     def load_state_dict(self, state):
         self.size, self.ptr = state["size"], state["ptr"]
         for t, saved in zip(self.tensors(), state["data"]):
             t[:self.size] = saved
-        if "episode_returns" in state:  # checkpoints from before episode returns were kept lack them
-            self.episode_returns[:self.size] = state["episode_returns"]
+        for name in ("episode_returns", "episode_starts", "episode_lengths"):
+            if name in state:  # checkpoints from before these were kept lack them
+                getattr(self, name)[:self.size] = state[name]
 
 
 class TeacherBuffer:

@@ -66,14 +66,18 @@ PRESETS = {
     # IRCR (Gangwani et al. 2020): TD3 on the return bonus alone (each step credited with its episode's
     # scaled return); no demos, no discriminator: what the bonus can learn without imitation
     "ircr": {"reward": "none", "no_lfd": True, "no_adaptation": True},
+    # RRD (Ren et al. 2022): TD3 on a learned per-step reward whose sum over an episode fits its
+    # episodic return; no demos, no discriminator
+    "rrd": {"reward": "none", "no_lfd": True, "no_adaptation": True, "return_bonus": 0.0, "return_decomposition": 1.0},
 }
 CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "eval_return_actor", "eval_return_target",
                "train_episodic_return", "teacher_threshold", "teacher_episodes", "promotions", "alpha", "disc_loss",
-               "disc_teacher", "disc_self", "reward_mean", "critic_loss", "actor_loss", "q", "updates",
+               "disc_teacher", "disc_self", "reward_mean", "decomposition_loss", "critic_loss", "actor_loss", "q", "updates",
                "steps_per_second", "time"]
 # what --resume RUN_DIR may change; every other flag is the saved run's
 RESUMABLE = ("total_timesteps", "threads", "device")
-PREDATING = {"return_bonus": 0.0}  # a run saved before the return bonus existed (or became the default) ran without
+# a run saved before the return bonus existed (or became the default) ran without; and without decomposition
+PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0}
 
 
 def parse_args(argv=None):
@@ -133,6 +137,12 @@ def parse_args(argv=None):
     g.add_argument("--return-scale", choices=["minmax", "rank"], default="minmax", help="how --return-bonus "
                    "scales an episodic return to [0, 1]: minmax = between the lowest and highest returns seen "
                    "(IRCR); rank = the share of R_B's finished transitions whose episode scored no higher")
+    g.add_argument("--return-decomposition", type=non_negative_float, default=0.0, help="adds this weight times "
+                   "a learned per-step reward r(s, a, s'), fitted so that an episode's steps sum to its episodic "
+                   "return (randomized return decomposition, Ren et al. 2022), divided by the range of returns "
+                   "seen per step of the env's time limit, to the critic reward; 0: off (rrd: 1)")
+    g.add_argument("--decomposition-subset", type=positive_int, default=64, help="steps drawn from each episode "
+                   "per reward-model minibatch (RRD's K); --batch-size / K episodes per minibatch")
     g.add_argument("--time-feature", action=argparse.BooleanOptionalAction, default=True, help="append 1 - t/T to obs")
     g.add_argument("--absorbing", action=argparse.BooleanOptionalAction, default=False, help="DAC absorbing states")
 
@@ -179,8 +189,11 @@ def check_args(p, args):
     if args.reward in ("env", "none") and not (args.no_lfd and args.no_adaptation):
         p.error(f"--reward {args.reward} learns without demos: it needs --no-lfd and --no-adaptation "
                 f"(or --algo {'td3' if args.reward == 'env' else 'ircr'})")
-    if args.reward == "none" and args.return_bonus <= 0:
-        p.error("--reward none leaves the critic only the return bonus: give --return-bonus > 0")
+    if args.reward == "none" and args.return_bonus <= 0 and args.return_decomposition <= 0:
+        p.error("--reward none leaves the critic only the return bonus or decomposition: give --return-bonus > 0 "
+                "or --return-decomposition > 0")
+    if args.return_decomposition > 0 and args.decomposition_subset > args.batch_size:
+        p.error(f"--decomposition-subset {args.decomposition_subset} is more than --batch-size {args.batch_size}")
     if args.buffer_size < 1001:
         p.error("--buffer-size must hold at least one whole episode (1001 transitions)")
     if args.eval_freq > args.total_timesteps and not (args.resume or args.evaluate):
@@ -290,7 +303,42 @@ def scale_returns(returns, kind, return_range, sorted_returns):
     return (returns - low) / max(high - low, 1e-8)
 
 
-def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_range=None, sorted_returns=None):
+# ---------------------------------------------------------------------------------------------
+# Return decomposition (an addition to the paper, off by default: --return-decomposition)
+# ---------------------------------------------------------------------------------------------
+
+class RewardModel(nn.Module):
+    """r(s, a, s'), a per-step reward learned from episodic returns alone (RRD, Ren et al. 2022;
+    the inputs s, a, s' - s as in the authors' code)."""
+
+    def __init__(self, obs_dim, act_dim, hidden):
+        super().__init__()
+        self.net = mlp([2 * obs_dim + act_dim, *hidden, 1], nn.ReLU)
+
+    def forward(self, obs, actions, next_obs):
+        return self.net(torch.cat([obs, actions, next_obs - obs], dim=-1)).squeeze(-1)
+
+
+def train_reward_model(reward_model, optimizer, self_buffer, args):
+    """One minibatch of randomized return decomposition: for a few finished episodes of R_B, the
+    mean of r over K random steps (an unbiased estimate of the mean over all steps) is fitted to
+    the episodic return over the episode's length (RRD's loss, per step). The subset's variance
+    in the loss pulls r towards the same value within an episode, less so as K nears its length."""
+    device = next(reward_model.parameters()).device
+    num_episodes = max(1, args.batch_size // args.decomposition_subset)
+    obs, actions, next_obs, mask, returns, lengths = (
+        x.to(device) for x in self_buffer.sample_episode_subsets(num_episodes, args.decomposition_subset))
+    per_step = reward_model(obs, actions, next_obs)
+    estimate = (per_step * mask).sum(1) / mask.sum(1).clamp_min(1.0)
+    loss = F.mse_loss(estimate, returns / lengths.clamp_min(1))
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return {"decomposition_loss": loss.detach()}
+
+
+def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_range=None, sorted_returns=None,
+               reward_model=None, episode_steps=1000):
     """Eqs. (7) and (8): one TD3 step on a batch from alpha R_E + (1 - alpha) R_B, rewarded by D."""
     batch, env_rewards, episode_returns = mixed_batch(teacher_buffer, self_buffer, args.batch_size, alpha,
                                                       with_returns=args.return_bonus > 0)
@@ -306,6 +354,13 @@ def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_ran
         # return, so the critic learns which actions lead to better episodes, beyond imitating R_E
         rewards = rewards + args.return_bonus * scale_returns(episode_returns.to(agent.device), args.return_scale,
                                                               return_range, sorted_returns)
+    if args.return_decomposition > 0:
+        # RRD's learned per-step reward, in units of the return range per step: about 1 at each step
+        # of an episode as good as the best seen, whatever the env's reward scale
+        with torch.no_grad():
+            learned = reward_model(obs, actions, next_obs)
+        step_scale = max(return_range[1] - return_range[0], 1e-8) / episode_steps
+        rewards = rewards + args.return_decomposition * learned / step_scale
     # DAC: the absorbing state's only action is zero (as the agent and the demos act there, and as
     # in DAC's code). With the actor's action instead, the critic is asked for Q at actions it never
     # saw in that state, the actor pushes them up, and the self-loop multiplies that by 1/(1 - gamma).
@@ -361,6 +416,11 @@ def train(args):
     parts = {"agent": agent, "disc": disc, "disc_optimizer": disc_optimizer, "self_buffer": self_buffer,
              "teacher_buffer": teacher_buffer, "env": EnvState(env), "eval_env": EnvState(eval_env),
              "rng": plumbing.RNGs(rng)}
+    reward_model = None
+    if args.return_decomposition > 0:
+        reward_model = RewardModel(obs_dim, act_dim, args.hidden).to(device)
+        reward_optimizer = make_adam(reward_model.parameters(), args.lr)
+        parts |= {"reward_model": reward_model, "reward_optimizer": reward_optimizer}
 
     # From here on Ctrl-C and SIGTERM only set stop.requested: the loop then stops between two
     # steps and checkpoints (during setup, before its first step), and the run can be resumed.
@@ -380,7 +440,7 @@ def train(args):
             config = {k: v for k, v in vars(args).items() if k != "given"}
             run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(
                 args.env, args.algo, args.seed), config)
-        cpu_kernels.apply(s.kernels, [*agent.networks(), disc])
+        cpu_kernels.apply(s.kernels, [*agent.networks(), disc, *([reward_model] if reward_model else [])])
         ranked = args.return_bonus > 0 and args.return_scale == "rank"  # kept sorted, for scale_returns
         sorted_returns = self_buffer.sorted_episode_returns().to(device) if ranked else None
 
@@ -447,8 +507,10 @@ def train(args):
                 # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)
                 if s.global_step % args.update_every == 0:
                     for _ in range(args.update_every):
+                        if reward_model is not None:
+                            stats.update(train_reward_model(reward_model, reward_optimizer, self_buffer, args))
                         stats.update(td3_update(agent, disc, teacher_buffer, self_buffer, s.alpha, args,
-                                                s.return_range, sorted_returns))
+                                                s.return_range, sorted_returns, reward_model, env.max_episode_steps))
                     bad = {k: float(v) for k, v in stats.items() if not math.isfinite(float(v))}
                     if bad:  # stop before a diverged actor acts in the env; the last checkpoint stays good
                         bar.close()

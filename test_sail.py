@@ -593,7 +593,8 @@ def test_auto_kernels_choose_without_touching_the_run_rng_and_keep_the_networks_
 import csv  # noqa: E402
 import json  # noqa: E402
 
-from sail import CSV_COLUMNS, Discriminator, discriminator_loss, scale_returns, shaped_reward, td3_update  # noqa: E402
+from sail import (CSV_COLUMNS, Discriminator, RewardModel, discriminator_loss, scale_returns,  # noqa: E402
+                  shaped_reward, td3_update, train_reward_model)
 
 TINY = ["--hidden", "32", "32", "--disc-hidden", "32", "32", "--threads", "1", "--eval-episodes", "1"]
 
@@ -653,6 +654,8 @@ SMOKE = {
     "dac": ["--algo", "dac"],
     "td3": ["--algo", "td3"],
     "ircr": ["--algo", "ircr"],
+    "rrd": ["--algo", "rrd", "--decomposition-subset", "16"],
+    "decomposition": ["--return-decomposition", "1", "--decomposition-subset", "16"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
 }
 
@@ -669,14 +672,76 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
     for bonus in (0.0, 2.0):
         torch.manual_seed(0)  # the same batch both times: the bonus draws no extra samples here
         args = argparse.Namespace(batch_size=64, reward="sail", return_bonus=bonus, return_scale="minmax",
-                                  absorbing=False)
+                                  absorbing=False, return_decomposition=0.0)
         means[bonus] = float(td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args,
                                         return_range=(2.0, 12.0))["reward_mean"])
     assert means[2.0] - means[0.0] == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-5)
     # IRCR (--reward none): the bonus is the whole reward, D plays no part
-    args = argparse.Namespace(batch_size=64, reward="none", return_bonus=2.0, return_scale="minmax", absorbing=False)
+    args = argparse.Namespace(batch_size=64, reward="none", return_bonus=2.0, return_scale="minmax", absorbing=False,
+                              return_decomposition=0.0)
     ircr = td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
     assert float(ircr["reward_mean"]) == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-6)
+    # return decomposition: a reward model that says 0.5 everywhere adds 3 * 0.5 / ((12 - 2) / 40) per step
+    model = RewardModel(3, 2, [16])
+    torch.nn.init.zeros_(model.net[-1].weight)
+    torch.nn.init.constant_(model.net[-1].bias, 0.5)
+    args.return_bonus, args.return_decomposition = 0.0, 3.0
+    rrd = td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0),
+                     reward_model=model, episode_steps=40)
+    assert float(rrd["reward_mean"]) == pytest.approx(3.0 * 0.5 / (10.0 / 40), abs=1e-5)
+
+
+def test_episode_subsets_hold_steps_of_one_finished_episode_and_mask_overwritten_ones():
+    buffer = ReplayBuffer(obs_dim=1, act_dim=1, capacity=20)
+    start = 0
+    for i in range(27):  # episodes 0-9 (return 0; its 0-6 overwritten), 10-14 (return 1), 15-24 (2, wraps), 25- running
+        buffer.add([i], [0], 0.0, [i + 1], 0.0)
+        if i in (9, 14, 24):
+            buffer.end_episode(start, {9: 0.0, 14: 1.0, 24: 2.0}[i])
+            start = buffer.ptr
+    torch.manual_seed(0)
+    obs, actions, next_obs, mask, returns, lengths = buffer.sample_episode_subsets(300, 8)
+    assert obs.shape == (300, 8, 1) and mask.shape == (300, 8)
+    assert set(lengths.tolist()) == {10, 5} and set(returns.tolist()) == {0.0, 1.0, 2.0}
+    first = {0.0: range(0, 10), 1.0: range(10, 15), 2.0: range(15, 25)}
+    for episode, kept, ret in zip(obs[..., 0], mask, returns.tolist()):  # kept steps: the anchor's episode
+        assert all(int(x) in first[ret] for x, m in zip(episode, kept) if m)
+    kept = obs[..., 0][mask.bool()]
+    assert kept.min() >= 7 and set(kept.tolist()) == set(range(7, 25))  # 0-6 overwritten, 25-26 running
+    for episode, kept, ret in zip(obs[..., 0], mask, returns.tolist()):  # distinct steps; a short episode whole
+        steps = episode[kept.bool()].tolist()
+        assert len(set(steps)) == len(steps) and (ret != 1.0 or sorted(steps) == list(range(10, 15)))
+        assert ret != 2.0 or len(steps) == 8
+    assert (mask[returns == 0.0] == 0).any()
+    copy = ReplayBuffer(obs_dim=1, act_dim=1, capacity=20)
+    copy.load_state_dict(buffer.state_dict())
+    assert torch.equal(copy.episode_starts, buffer.episode_starts) and torch.equal(copy.episode_lengths,
+                                                                                    buffer.episode_lengths)
+
+
+def test_return_decomposition_recovers_a_per_step_reward_from_episodic_returns():
+    """Episodes of 2 to 16 steps whose hidden per-step reward is 2 * obs[0] - 1: only each
+    episode's sum is stored, and the reward model learns the per-step reward from the sums."""
+    import argparse
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    buffer = ReplayBuffer(obs_dim=2, act_dim=1, capacity=5000)
+    while buffer.size < 4900:
+        start, length = buffer.ptr, int(rng.integers(2, 17))
+        obs = rng.uniform(-1, 1, (length, 2)).astype(np.float32)
+        for o in obs:
+            buffer.add(o, [0.0], 0.0, o, 0.0)
+        buffer.end_episode(start, float((2 * obs[:, 0] - 1).sum()))
+    model = RewardModel(2, 1, [32, 32])
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    args = argparse.Namespace(batch_size=256, decomposition_subset=16)
+    for _ in range(1500):
+        loss = train_reward_model(model, optimizer, buffer, args)["decomposition_loss"]
+    probe = torch.tensor(rng.uniform(-1, 1, (500, 2)), dtype=torch.float32)
+    learned = model(probe, torch.zeros(500, 1), probe).detach()
+    assert float(loss) < 0.05
+    assert torch.corrcoef(torch.stack([learned, 2 * probe[:, 0] - 1]))[0, 1] > 0.95
+    assert float((learned - (2 * probe[:, 0] - 1)).abs().mean()) < 0.2
 
 
 def test_return_scale_rank_is_the_share_of_finished_transitions_that_scored_no_higher():
@@ -744,13 +809,17 @@ def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos
     assert [int(r["global_step"]) for r in rows] == [400, 800, 1200, 1600]
     assert int(rows[-1]["updates"]) == 601
     alphas = [float(r["alpha"]) for r in rows]
-    if name in ("no-lfd", "dac", "td3", "ircr"):
+    if name in ("no-lfd", "dac", "td3", "ircr", "rrd"):
         assert alphas == [0.0] * 4
     if name == "fixed-alpha":
         assert alphas == [0.5] * 4
-    if name in ("no-adaptation", "dac", "td3", "ircr"):
+    if name in ("no-adaptation", "dac", "td3", "ircr", "rrd"):
         assert all(int(r["promotions"]) == 0 for r in rows)
-    if name in ("td3", "ircr"):  # no discriminator trained
+    if name in ("rrd", "decomposition"):  # the reward model trains with every TD3 update
+        assert all(np.isfinite(float(r["decomposition_loss"])) for r in rows if int(r["global_step"]) >= 1000)
+    else:
+        assert all(r["decomposition_loss"] == "nan" for r in rows)
+    if name in ("td3", "ircr", "rrd"):  # no discriminator trained
         assert all(r["disc_loss"] == "nan" for r in rows)
     else:
         assert 0.0 < float(rows[-1]["disc_teacher"]) < 1.0
