@@ -27,6 +27,10 @@ beats R_E's worst moves it on. The bonus credits every transition with its episo
 scaled to [0, 1] (IRCR's guidance reward, Gangwani et al. 2020), which tells the critic which
 of the agent's own episodes were better. It uses only what the sparse env gives at an episode's
 end. --return-bonus 0 is the paper's SAIL; README's Results compare the two.
+
+A second addition, off by default: --return-decomposition learns a per-step reward r(s, a, s')
+whose sum over an episode fits its episodic return (RRD, Ren et al. 2022), a credit that,
+unlike the bonus, differs between the steps of one episode.
 """
 
 import signal
@@ -72,8 +76,8 @@ PRESETS = {
 }
 CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "eval_return_actor", "eval_return_target",
                "train_episodic_return", "teacher_threshold", "teacher_episodes", "promotions", "alpha", "disc_loss",
-               "disc_teacher", "disc_self", "reward_mean", "decomposition_loss", "critic_loss", "actor_loss", "q", "updates",
-               "steps_per_second", "time"]
+               "disc_teacher", "disc_self", "reward_mean", "decomposition_loss", "critic_loss", "actor_loss", "q",
+               "updates", "steps_per_second", "time"]
 # what --resume RUN_DIR may change; every other flag is the saved run's
 RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
@@ -130,7 +134,7 @@ def parse_args(argv=None):
                    help="env steps between groups of as many TD3 updates (authors: 1000)")
     g.add_argument("--reward", choices=["sail", "airl", "env", "none"], default="sail",
                    help="critic reward: sail = -log(1-D), airl = log D - log(1-D), env = sparse env reward, "
-                   "none = 0 (the return bonus alone)")
+                   "none = 0 (the return bonus or decomposition alone)")
     g.add_argument("--return-bonus", type=non_negative_float, default=1.0, help="adds this weight times the "
                    "episodic return of the transition's episode, scaled to [0, 1] (--return-scale), to the "
                    "critic reward (IRCR's guidance reward); 0: off, the paper's SAIL (dac, td3: 0)")
@@ -309,7 +313,7 @@ def scale_returns(returns, kind, return_range, sorted_returns):
 
 class RewardModel(nn.Module):
     """r(s, a, s'), a per-step reward learned from episodic returns alone (RRD, Ren et al. 2022;
-    the inputs s, a, s' - s as in the authors' code)."""
+    inputs s, a and the change of state, as in github.com/Stilwell-Git/Randomized-Return-Decomposition)."""
 
     def __init__(self, obs_dim, act_dim, hidden):
         super().__init__()
