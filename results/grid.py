@@ -72,6 +72,11 @@ GRIDS = {
     # IRCR: the return bonus alone, without teacher or discriminator (what SAIL's imitation adds to it)
     "learning-ircr": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                           {"ircr": ("sail.py", [*OFF_POLICY, "--algo", "ircr"])}, [1, 2, 3]),
+    # return decomposition (RRD): a learned per-step reward on top of SAIL's defaults (weights 1 and 3), and alone
+    "learning-rrd": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                         {"sail-rrd1": ("sail.py", [*OFF_POLICY, "--return-decomposition", "1"]),
+                          "sail-rrd3": ("sail.py", [*OFF_POLICY, "--return-decomposition", "3"]),
+                          "rrd": ("sail.py", [*OFF_POLICY, "--algo", "rrd"])}, [1, 2, 3]),
     # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
