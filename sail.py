@@ -81,7 +81,7 @@ CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "
 # what --resume RUN_DIR may change; every other flag is the saved run's
 RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
-PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0}
+PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False}
 
 
 def parse_args(argv=None):
@@ -130,6 +130,8 @@ def parse_args(argv=None):
     g.add_argument("--policy-delay", type=positive_int, default=2, help="critic updates per actor update")
     g.add_argument("--exploration-noise", type=non_negative_float, default=0.1, help="std of Gaussian action noise")
     g.add_argument("--buffer-size", type=positive_int, default=1_000_000, help="capacity of R_B in transitions")
+    g.add_argument("--critic-layer-norm", action="store_true", help="LayerNorm before each hidden ReLU of the "
+                   "critics (as RLPD), against Q values that run away from the data")
     g.add_argument("--update-every", type=positive_int, default=1,
                    help="env steps between groups of as many TD3 updates (authors: 1000)")
     g.add_argument("--reward", choices=["sail", "airl", "env", "none"], default="sail",
@@ -412,7 +414,7 @@ def train(args):
 
     agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidden=args.hidden, lr=args.lr,
                 gamma=args.gamma, tau=args.tau, policy_noise=args.policy_noise, noise_clip=args.noise_clip,
-                policy_delay=args.policy_delay, device=device)
+                policy_delay=args.policy_delay, device=device, critic_layer_norm=args.critic_layer_norm)
     self_buffer = ReplayBuffer(obs_dim, act_dim, args.buffer_size)
     disc = Discriminator(obs_dim, act_dim, args.disc_hidden).to(device)
     disc_optimizer = make_adam(disc.parameters(), args.disc_lr)

@@ -19,13 +19,14 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 
-def mlp(sizes, activation=nn.ReLU):
-    """nn.Linear layers of the given sizes with `activation` between them (none at the end)."""
+def mlp(sizes, activation=nn.ReLU, layer_norm=False):
+    """nn.Linear layers of the given sizes with `activation` between them (none at the end);
+    with `layer_norm`, a LayerNorm before each activation."""
     layers = []
     for i, (fan_in, fan_out) in enumerate(zip(sizes[:-1], sizes[1:])):
         layers.append(nn.Linear(fan_in, fan_out))
         if i < len(sizes) - 2:
-            layers.append(activation())
+            layers += [nn.LayerNorm(fan_out), activation()] if layer_norm else [activation()]
     return nn.Sequential(*layers)
 
 
@@ -45,11 +46,12 @@ class Actor(nn.Module):
 
 
 class Critic(nn.Module):
-    """Q(s, a): MLP with ReLU on the concatenated observation and action."""
+    """Q(s, a): MLP with ReLU on the concatenated observation and action (optionally LayerNorm
+    in each hidden layer, which bounds the features and so Q's growth off the data, as RLPD's critic)."""
 
-    def __init__(self, obs_dim, act_dim, hidden):
+    def __init__(self, obs_dim, act_dim, hidden, layer_norm=False):
         super().__init__()
-        self.net = mlp([obs_dim + act_dim, *hidden, 1])
+        self.net = mlp([obs_dim + act_dim, *hidden, 1], layer_norm=layer_norm)
 
     def forward(self, obs, action):
         return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)
@@ -58,10 +60,10 @@ class Critic(nn.Module):
 class TwinCritic(nn.Module):
     """Q1(s, a) and Q2(s, a): two independent critics."""
 
-    def __init__(self, obs_dim, act_dim, hidden):
+    def __init__(self, obs_dim, act_dim, hidden, layer_norm=False):
         super().__init__()
-        self.q1 = Critic(obs_dim, act_dim, hidden)
-        self.q2 = Critic(obs_dim, act_dim, hidden)
+        self.q1 = Critic(obs_dim, act_dim, hidden, layer_norm)
+        self.q2 = Critic(obs_dim, act_dim, hidden, layer_norm)
 
     def forward(self, obs, action):
         return self.q1(obs, action), self.q2(obs, action)
@@ -77,11 +79,11 @@ def make_adam(params, lr):
 class TD3:
     def __init__(self, obs_dim, act_dim, action_low, action_high, hidden=(256, 256), lr=3e-4,
                  gamma=0.99, tau=0.005, policy_noise=0.2, noise_clip=0.5, policy_delay=2,
-                 device="cpu"):
+                 device="cpu", critic_layer_norm=False):
         self.gamma, self.tau, self.policy_delay = gamma, tau, policy_delay
         self.device = torch.device(device)
         self.actor = Actor(obs_dim, act_dim, hidden, action_low, action_high).to(self.device)
-        self.critic = TwinCritic(obs_dim, act_dim, hidden).to(self.device)
+        self.critic = TwinCritic(obs_dim, act_dim, hidden, critic_layer_norm).to(self.device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.actor_optimizer = make_adam(self.actor.parameters(), lr)

@@ -656,6 +656,7 @@ SMOKE = {
     "ircr": ["--algo", "ircr"],
     "rrd": ["--algo", "rrd", "--decomposition-subset", "16"],
     "decomposition": ["--return-decomposition", "1", "--decomposition-subset", "16"],
+    "critic-layer-norm": ["--critic-layer-norm", "--kernels", "onednn"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
 }
 
@@ -823,6 +824,10 @@ def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos
         assert all(r["disc_loss"] == "nan" for r in rows)
     else:
         assert 0.0 < float(rows[-1]["disc_teacher"]) < 1.0
+    if name == "critic-layer-norm":  # a LayerNorm (a weight of the hidden size) after each hidden Linear of Q1, Q2
+        critic = torch.load(run_dir / "checkpoint.pt", weights_only=True)["agent"]["critic"]
+        assert [k for k, v in critic.items() if k.endswith("weight") and v.shape == (32,)] == \
+               ["q1.net.1.weight", "q1.net.4.weight", "q2.net.1.weight", "q2.net.4.weight"]
     if name == "dac":  # the agent acts with zero in the absorbing state, as the demos do
         buffer = torch.load(run_dir / "checkpoint.pt", weights_only=True)["self_buffer"]["data"]
         absorbing = buffer[0][:, -1] == 1.0

@@ -42,7 +42,7 @@ disc.load_state_dict(state["disc"])
 torch.set_grad_enabled(False)
 
 if config["absorbing"]:
-    critic = TwinCritic(obs_dim, act_dim, config["hidden"])
+    critic = TwinCritic(obs_dim, act_dim, config["hidden"], config.get("critic_layer_norm", False))
     critic.load_state_dict(state["agent"]["critic"])
     actor = Actor(obs_dim, act_dim, config["hidden"], -np.ones(act_dim), np.ones(act_dim))
     actor.load_state_dict(state["agent"]["actor"])  # its buffers hold the env's action bounds

@@ -39,7 +39,8 @@ torch.set_grad_enabled(False)
 env = make_env(config["env"], args.seed, sparse=False, time_feature=config["time_feature"],
                absorbing=config["absorbing"])
 obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
-agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidden=config["hidden"])
+agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidden=config["hidden"],
+            critic_layer_norm=config.get("critic_layer_norm", False))
 reward_model = RewardModel(obs_dim, act_dim, config["hidden"])
 load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), {"agent": agent, "reward_model": reward_model})
 rng = np.random.default_rng(args.seed)
