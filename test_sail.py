@@ -888,6 +888,19 @@ def test_resume_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos, straigh
     assert_same_run(straight_run, tmp_path / "b")
 
 
+def test_resume_with_return_decomposition_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos):
+    """The reward model, its optimizer and the buffer's episode bounds are in the checkpoint."""
+    flags = [*RESUME_FLAGS, "--demos", poor_hopper_demos, "--return-decomposition", "1", "--decomposition-subset", "16",
+             "--output-dir", str(tmp_path)]
+    straight = run_script("sail.py", *flags, "--total-timesteps", "1500", "--run-name", "a")
+    first = run_script("sail.py", *flags, "--total-timesteps", "700", "--run-name", "b")
+    assert straight.returncode == 0 and first.returncode == 0, (straight.stderr + first.stderr)[-3000:]
+    resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1500")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert_same_run(tmp_path / "a", tmp_path / "b")
+    assert all(np.isfinite(float(r["decomposition_loss"])) for r in read_csv(tmp_path / "b")[2:])
+
+
 def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_result(tmp_path, poor_hopper_demos, straight_run):
     """SIGKILL leaves no chance to save: the run must go on from its last periodic checkpoint,
     whether it was killed between checkpoints or while writing one (atomic writes)."""
