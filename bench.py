@@ -21,7 +21,6 @@ copied to torch for every batch.
 import copy
 import csv
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -38,7 +37,7 @@ import sail
 import td3
 from buffers import ReplayBuffer, TeacherBuffer
 from envs import make_env
-from plumbing import ArgumentParser, positive_int
+from plumbing import ArgumentParser, cpu_model, positive_int
 
 
 def parse_args():
@@ -296,19 +295,6 @@ def peak_memory_gb(args):
     if out.returncode != 0:
         sys.exit(f"bench.py: error: the memory measurement failed: {out.stderr.strip().splitlines()[-1]}")
     return float(out.stdout.split()[-1])
-
-
-def cpu_model():
-    """The CPU as the kernel reports it: model name, family/model numbers and AVX-512 (a VM may
-    show only "AMD EPYC"; the numbers tell its generations apart). Speed means little without it."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            info = dict(line.split(":", 1) for line in f.read().split("\n\n")[0].splitlines() if ":" in line)
-        info = {k.strip(): v.strip() for k, v in info.items()}
-        avx512 = "AVX-512" if "avx512f" in info.get("flags", "").split() else "no AVX-512"
-        return f"{info['model name']} (family {info['cpu family']}, model {info['model']}, {avx512})"
-    except (OSError, KeyError):
-        return platform.processor() or platform.machine()
 
 
 def main():

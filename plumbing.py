@@ -11,6 +11,7 @@ import csv
 import io
 import json
 import os
+import platform
 import shlex
 import signal
 import sys
@@ -114,13 +115,27 @@ def check_writable(path):
         raise ConfigError(f"cannot write {path}: {e.strerror}") from None
 
 
+def cpu_model():
+    """The CPU as the kernel reports it: model name, family/model numbers and AVX-512 (a VM may
+    show only "AMD EPYC"; the numbers tell its generations apart). Speed means little without it."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            info = dict(line.split(":", 1) for line in f.read().split("\n\n")[0].splitlines() if ":" in line)
+        info = {k.strip(): v.strip() for k, v in info.items()}
+        avx512 = "AVX-512" if "avx512f" in info.get("flags", "").split() else "no AVX-512"
+        return f"{info['model name']} (family {info['cpu family']}, model {info['model']}, {avx512})"
+    except (OSError, KeyError):
+        return platform.processor() or platform.machine()
+
+
 def make_run_dir(output_dir, name, config):
-    """Creates output_dir/name with config.json (every flag and the exact command)."""
+    """Creates output_dir/name with config.json (every flag, the exact command and the CPU, which
+    the run's steps_per_second means little without)."""
     run_dir = os.path.join(output_dir, name)
     if os.path.exists(run_dir):
         raise ConfigError(f"run folder {run_dir} already exists (use --resume {run_dir} to continue it)")
     check_writable(os.path.join(run_dir, "config.json"))
-    config = dict(config, command=shlex.join([sys.executable, *sys.argv]))
+    config = dict(config, command=shlex.join([sys.executable, *sys.argv]), cpu=cpu_model())
     atomic_write(os.path.join(run_dir, "config.json"), lambda f: f.write(json.dumps(config, indent=2).encode()))
     return run_dir
 

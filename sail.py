@@ -461,7 +461,7 @@ def train(args):
             plumbing.save_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts, loop=dataclasses.asdict(s), obs=obs,
                                      stats={k: float(v) for k, v in stats.items()})
 
-        print(f"run folder: {run_dir}\nCPU kernels: {s.kernels}", flush=True)
+        print(f"run folder: {run_dir}\nCPU: {plumbing.cpu_model()}, kernels: {s.kernels}", flush=True)
         if use_demos:
             print(f"teacher: {teacher_buffer.num_episodes} episodes, return {np.mean(teacher_buffer.returns):.1f}",
                   flush=True)
