@@ -77,6 +77,9 @@ GRIDS = {
                          {"sail-rrd1": ("sail.py", [*OFF_POLICY, "--return-decomposition", "1"]),
                           "sail-rrd3": ("sail.py", [*OFF_POLICY, "--return-decomposition", "3"]),
                           "rrd": ("sail.py", [*OFF_POLICY, "--algo", "rrd"])}, [1, 2, 3]),
+    # LayerNorm in the critics (as RLPD), on top of SAIL's defaults
+    "learning-ln": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                        {"sail-ln": ("sail.py", [*OFF_POLICY, "--critic-layer-norm"])}, [1, 2, 3]),
     # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
