@@ -81,7 +81,8 @@ CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "
 # what --resume RUN_DIR may change; every other flag is the saved run's
 RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
-PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False}
+PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
+             "decomposition_unit": "range"}
 
 
 def parse_args(argv=None):
@@ -147,6 +148,10 @@ def parse_args(argv=None):
                    "a learned per-step reward r(s, a, s'), fitted so that an episode's steps sum to its episodic "
                    "return (randomized return decomposition, Ren et al. 2022), divided by the range of returns "
                    "seen per step of the env's time limit, to the critic reward; 0: off (rrd: 1)")
+    g.add_argument("--decomposition-unit", choices=["range", "rate"], default="range", help="what the learned "
+                   "reward is divided by: range = the range of episodic returns seen over the env's time limit; rate "
+                   "= the range of per-step returns (return / length) seen, the same where every episode runs to the "
+                   "limit and smaller where episodes end early, where range's unit lets r outweigh D's reward")
     g.add_argument("--decomposition-subset", type=positive_int, default=64, help="steps drawn from each episode "
                    "per reward-model minibatch (RRD's K); --batch-size / K episodes per minibatch")
     g.add_argument("--time-feature", action=argparse.BooleanOptionalAction, default=True, help="append 1 - t/T to obs")
@@ -343,8 +348,15 @@ def train_reward_model(reward_model, optimizer, self_buffer, args):
     return {"decomposition_loss": loss.detach()}
 
 
+def decomposition_unit(kind, return_range, rate_range, episode_steps):
+    """The learned reward's unit: about 1 per step of the best episode seen over the worst."""
+    if kind == "rate":
+        return max(rate_range[1] - rate_range[0], 1e-8)
+    return max(return_range[1] - return_range[0], 1e-8) / episode_steps
+
+
 def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_range=None, sorted_returns=None,
-               reward_model=None, episode_steps=1000):
+               reward_model=None, decomposition_unit=1.0):
     """Eqs. (7) and (8): one TD3 step on a batch from alpha R_E + (1 - alpha) R_B, rewarded by D."""
     batch, env_rewards, episode_returns = mixed_batch(teacher_buffer, self_buffer, args.batch_size, alpha,
                                                       with_returns=args.return_bonus > 0)
@@ -361,12 +373,11 @@ def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_ran
         rewards = rewards + args.return_bonus * scale_returns(episode_returns.to(agent.device), args.return_scale,
                                                               return_range, sorted_returns)
     if args.return_decomposition > 0:
-        # RRD's learned per-step reward, in units of the return range per step: about 1 at each step
-        # of an episode as good as the best seen, whatever the env's reward scale
+        # RRD's learned per-step reward in units of the per-step returns seen (decomposition_unit), so
+        # that its weight means the same whatever the env's reward scale
         with torch.no_grad():
             learned = reward_model(obs, actions, next_obs)
-        step_scale = max(return_range[1] - return_range[0], 1e-8) / episode_steps
-        rewards = rewards + args.return_decomposition * learned / step_scale
+        rewards = rewards + args.return_decomposition * learned / decomposition_unit
     # DAC: the absorbing state's only action is zero (as the agent and the demos act there, and as
     # in DAC's code). With the actor's action instead, the critic is asked for Q at actions it never
     # saw in that state, the actor pushes them up, and the self-loop multiplies that by 1/(1 - gamma).
@@ -389,6 +400,7 @@ class LoopState:
     first_promotion_step: int | None = None
     train_episodic_return: float = float("nan")
     return_range: tuple = (float("inf"), -float("inf"))  # lowest and highest episodic returns seen (R_E's too)
+    rate_range: tuple = (float("inf"), -float("inf"))    # the same for return / length (--decomposition-unit rate)
     train_time: float = 0.0             # seconds of training (evaluations excluded)
     rows: list = dataclasses.field(default_factory=list)  # progress.csv
 
@@ -441,6 +453,8 @@ def train(args):
             s = LoopState(alpha=0.0 if args.no_lfd else args.alpha, kernels=kernels)
             if use_demos:
                 s.return_range = (min(teacher_buffer.returns), max(teacher_buffer.returns))
+                rates = [ret / len(data[0]) for ret, data in teacher_buffer.episodes]
+                s.rate_range = (min(rates), max(rates))
             obs, _ = env.reset()
             stats = {}  # the latest losses, logged at each evaluation
             config = {k: v for k, v in vars(args).items() if k != "given"}
@@ -491,6 +505,8 @@ def train(args):
                     sorted_returns = self_buffer.sorted_episode_returns().to(device)
                 s.return_range = (min(s.return_range[0], s.train_episodic_return),
                                   max(s.return_range[1], s.train_episodic_return))
+                rate = s.train_episodic_return / ((self_buffer.ptr - s.episode_start) % args.buffer_size or args.buffer_size)
+                s.rate_range = (min(s.rate_range[0], rate), max(s.rate_range[1], rate))
                 if not args.no_adaptation:
                     episode = self_buffer.latest((self_buffer.ptr - s.episode_start) % args.buffer_size)
                     if teacher_buffer.promote(s.train_episodic_return, *episode):
@@ -512,11 +528,13 @@ def train(args):
 
                 # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)
                 if s.global_step % args.update_every == 0:
+                    unit = decomposition_unit(args.decomposition_unit, s.return_range, s.rate_range,
+                                              env.max_episode_steps)
                     for _ in range(args.update_every):
                         if reward_model is not None:
                             stats.update(train_reward_model(reward_model, reward_optimizer, self_buffer, args))
                         stats.update(td3_update(agent, disc, teacher_buffer, self_buffer, s.alpha, args,
-                                                s.return_range, sorted_returns, reward_model, env.max_episode_steps))
+                                                s.return_range, sorted_returns, reward_model, unit))
                     bad = {k: float(v) for k, v in stats.items() if not math.isfinite(float(v))}
                     if bad:  # stop before a diverged actor acts in the env; the last checkpoint stays good
                         bar.close()

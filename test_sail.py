@@ -593,8 +593,8 @@ def test_auto_kernels_choose_without_touching_the_run_rng_and_keep_the_networks_
 import csv  # noqa: E402
 import json  # noqa: E402
 
-from sail import (CSV_COLUMNS, Discriminator, RewardModel, discriminator_loss, scale_returns,  # noqa: E402
-                  shaped_reward, td3_update, train_reward_model)
+from sail import (CSV_COLUMNS, Discriminator, RewardModel, decomposition_unit, discriminator_loss,  # noqa: E402
+                  scale_returns, shaped_reward, td3_update, train_reward_model)
 
 TINY = ["--hidden", "32", "32", "--disc-hidden", "32", "32", "--threads", "1", "--eval-episodes", "1"]
 
@@ -655,7 +655,7 @@ SMOKE = {
     "td3": ["--algo", "td3"],
     "ircr": ["--algo", "ircr"],
     "rrd": ["--algo", "rrd", "--decomposition-subset", "16"],
-    "decomposition": ["--return-decomposition", "1", "--decomposition-subset", "16"],
+    "decomposition": ["--return-decomposition", "1", "--decomposition-subset", "16", "--decomposition-unit", "rate"],
     "critic-layer-norm": ["--critic-layer-norm", "--kernels", "onednn"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
 }
@@ -687,9 +687,12 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
     torch.nn.init.zeros_(model.net[-1].weight)
     torch.nn.init.constant_(model.net[-1].bias, 0.5)
     args.return_bonus, args.return_decomposition = 0.0, 3.0
+    unit = decomposition_unit("range", (2.0, 12.0), (0.5, 3.0), episode_steps=40)
     rrd = td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0),
-                     reward_model=model, episode_steps=40)
+                     reward_model=model, decomposition_unit=unit)
     assert float(rrd["reward_mean"]) == pytest.approx(3.0 * 0.5 / (10.0 / 40), abs=1e-5)
+    # --decomposition-unit rate: per-step returns 0.5 to 3.0 seen, whatever the time limit
+    assert decomposition_unit("rate", (2.0, 12.0), (0.5, 3.0), episode_steps=40) == pytest.approx(2.5)
 
 
 def test_episode_subsets_hold_steps_of_one_finished_episode_and_mask_overwritten_ones():

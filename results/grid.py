@@ -76,6 +76,8 @@ GRIDS = {
     "learning-rrd": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                          {"sail-rrd1": ("sail.py", [*OFF_POLICY, "--return-decomposition", "1"]),
                           "sail-rrd3": ("sail.py", [*OFF_POLICY, "--return-decomposition", "3"]),
+                          "sail-rrd1-rate": ("sail.py", [*OFF_POLICY, "--return-decomposition", "1",
+                                                         "--decomposition-unit", "rate"]),
                           "rrd": ("sail.py", [*OFF_POLICY, "--algo", "rrd"])}, [1, 2, 3]),
     # LayerNorm in the critics (as RLPD), on top of SAIL's defaults
     "learning-ln": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
