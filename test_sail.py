@@ -26,14 +26,18 @@ def run_script(*args, timeout=240):
     return subprocess.run([sys.executable, *args], cwd=HERE, capture_output=True, text=True, timeout=timeout)
 
 
-def run_scripts(*commands, timeout=240):
-    """run_script for each command, all at once (most of each is importing torch and MuJoCo)."""
-    procs = [subprocess.Popen([sys.executable, *args], cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              text=True) for args in commands]
+def run_scripts(*commands, timeout=240, at_once=None):
+    """run_script for each command, `at_once` of them at a time (default: all; most of each is
+    importing torch and MuJoCo, and a 2-core CI machine runs two single-threaded runs in the time of one)."""
+    at_once = at_once or len(commands)
     results = []
-    for args, proc in zip(commands, procs):
-        out, err = proc.communicate(timeout=timeout)
-        results.append(subprocess.CompletedProcess([sys.executable, *args], proc.returncode, out, err))
+    for i in range(0, len(commands), at_once):
+        chunk = commands[i:i + at_once]
+        procs = [subprocess.Popen([sys.executable, *args], cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                  text=True) for args in chunk]
+        for args, proc in zip(chunk, procs):
+            out, err = proc.communicate(timeout=timeout)
+            results.append(subprocess.CompletedProcess([sys.executable, *args], proc.returncode, out, err))
     return results
 
 
@@ -784,17 +788,25 @@ def test_deploy_target_changes_what_is_scored_and_saved_not_what_is_learned(tmp_
     assert all(torch.equal(model["actor"][k], checkpoint["agent"]["actor_target"][k]) for k in model["actor"])
 
 
+@pytest.fixture(scope="module")
+def smoke_runs(tmp_path_factory, poor_hopper_demos):
+    """Every SMOKE run, as many at a time as there are cores: {name: (process, run folder)}."""
+    out = tmp_path_factory.mktemp("smoke")
+    commands = []
+    for name, flags in SMOKE.items():
+        common = ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--num-demos", "1", "--output-dir", str(out),
+                  "--run-name", name, "--save-model", "--hidden", "32", "32", "--threads", "1", "--eval-episodes", "1"]
+        commands.append(("bc.py", *common, *flags) if name == "bc" else
+                        ("sail.py", *common, "--total-timesteps", "1600", "--learning-starts", "1000",
+                         "--eval-freq", "400", "--disc-freq", "200", "--disc-hidden", "32", "32", *flags))
+    procs = run_scripts(*commands, at_once=max(2, os.cpu_count() or 2))
+    return {name: (proc, out / name) for name, proc in zip(SMOKE, procs)}
+
+
 @pytest.mark.parametrize("name", sorted(SMOKE))
-def test_smoke_run_of_each_preset_and_ablation(name, tmp_path, poor_hopper_demos):
-    common = ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--num-demos", "1", "--output-dir", str(tmp_path),
-              "--run-name", "run", "--save-model", "--hidden", "32", "32", "--threads", "1", "--eval-episodes", "1"]
-    if name == "bc":
-        proc = run_script("bc.py", *common, *SMOKE[name])
-    else:
-        proc = run_script("sail.py", *common, "--total-timesteps", "1600", "--learning-starts", "1000",
-                          "--eval-freq", "400", "--disc-freq", "200", "--disc-hidden", "32", "32", *SMOKE[name])
+def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
+    proc, run_dir = smoke_runs[name]
     assert proc.returncode == 0, proc.stderr[-3000:]
-    run_dir = tmp_path / "run"
     rows = read_csv(run_dir)
     assert list(rows[0]) == CSV_COLUMNS
     assert all(np.isfinite(float(r["eval_return"])) for r in rows)
@@ -895,8 +907,8 @@ def test_resume_with_return_decomposition_equals_an_uninterrupted_run(tmp_path, 
     """The reward model, its optimizer and the buffer's episode bounds are in the checkpoint."""
     flags = [*RESUME_FLAGS, "--demos", poor_hopper_demos, "--return-decomposition", "1", "--decomposition-subset", "16",
              "--output-dir", str(tmp_path)]
-    straight = run_script("sail.py", *flags, "--total-timesteps", "1500", "--run-name", "a")
-    first = run_script("sail.py", *flags, "--total-timesteps", "700", "--run-name", "b")
+    straight, first = run_scripts(("sail.py", *flags, "--total-timesteps", "1500", "--run-name", "a"),
+                                  ("sail.py", *flags, "--total-timesteps", "700", "--run-name", "b"))
     assert straight.returncode == 0 and first.returncode == 0, (straight.stderr + first.stderr)[-3000:]
     resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1500")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
@@ -939,7 +951,7 @@ def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_result(tmp_path
     assert_same_run(straight_run, run_dir)
 
 
-def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, straight_run):
+def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, straight_run, capsys):
     import shutil
     run = shutil.copytree(straight_run, tmp_path / "run")  # with model.pt (--save-model) and checkpoint.pt
     noisy = ("sail.py", "--evaluate", str(run), "--eval-episodes", "3", "--seed", "7", "--eval-noise", "0.3")
@@ -964,9 +976,10 @@ def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, straig
     assert "checkpoint.pt: mean return" in from_checkpoint.stdout.splitlines()[3]
     config = json.load(open(run / "config.json"))
     json.dump(config | {"hidden": [64, 64]}, open(run / "config.json", "w"))  # not the saved sizes
-    assert_one_line_error(run_script("sail.py", "--evaluate", str(run)))
+    import sail
+    assert_one_line_error(main_in_process(sail.main, ["--evaluate", str(run)], capsys))
     os.remove(run / "checkpoint.pt")
-    assert_one_line_error(run_script("sail.py", "--evaluate", str(run)))
+    assert_one_line_error(main_in_process(sail.main, ["--evaluate", str(run)], capsys))
 
 
 def test_evaluate_renders_a_video_headless(tmp_path, straight_run):
@@ -1069,7 +1082,8 @@ def test_sail_surpasses_a_poor_teacher_and_the_no_adaptation_ablation_does_not(t
 
 
 @pytest.mark.parametrize("signame, code", [("SIGINT", 130), ("SIGTERM", 143)])
-def test_ctrl_c_or_sigterm_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path, poor_hopper_demos, signame, code):
+def test_ctrl_c_or_sigterm_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path, poor_hopper_demos, signame, code,
+                                                                       capsys):
     """Ctrl-C, kill, timeout and job schedulers all stop a run the same way: a final checkpoint,
     the CSV intact, the shell's exit code, and --resume goes on from there."""
     import signal
@@ -1094,8 +1108,9 @@ def test_ctrl_c_or_sigterm_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path
     assert steps > int(rows[-1]["global_step"])
     assert loop["train_time"] > float(rows[-1]["time"])  # the seconds after the last row are not lost
     # a flag that a resumed run cannot honour is one line, also when given with its default value
+    import sail
     for flag in (["--lr", "3e-4"], ["--env", "Walker2d-v5"]):
-        assert_one_line_error(run_script("sail.py", "--resume", str(run_dir), *flag))
+        assert_one_line_error(main_in_process(sail.main, ["--resume", str(run_dir), *flag], capsys))
     resumed = run_script("sail.py", "--resume", str(run_dir), "--total-timesteps", "2000")  # to the next evaluation
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert int(read_csv(run_dir)[-1]["global_step"]) > steps
@@ -1161,8 +1176,8 @@ def test_loading_refuses_a_file_that_would_run_code(tmp_path, poor_hopper_demos,
     shutil.copytree(straight_run, run)
     for name in ("checkpoint.pt", "model.pt"):
         torch.save({"loop": Payload(), "actor": Payload()}, run / name)
-    assert_one_line_error(run_script("sail.py", "--resume", str(run)))
-    assert_one_line_error(run_script("sail.py", "--evaluate", str(run)))
+    for proc in run_scripts(("sail.py", "--resume", str(run)), ("sail.py", "--evaluate", str(run))):
+        assert_one_line_error(proc)
     assert not marker.exists()
 
 
@@ -1283,14 +1298,13 @@ def test_gae_bootstraps_through_truncation_and_not_through_termination():
 
 
 @pytest.mark.parametrize("flags", [[], ["--pofd"]])
-def test_gail_and_pofd_smoke_runs_write_the_csv_and_resume_exactly(tmp_path, poor_hopper_demos, flags):
+def test_gail_and_pofd_smoke_runs_write_the_csv_and_resume_exactly(tmp_path, poor_hopper_demos, flags, capsys):
     common = ["gail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--steps-per-batch", "500",
               "--eval-freq", "1000", "--eval-episodes", "1", "--hidden", "16", "16", "--disc-hidden", "16", "16",
               "--checkpoint-freq", "1000", "--output-dir", str(tmp_path), *flags]
-    straight = run_script(*common, "--total-timesteps", "3000", "--run-name", "a")
-    assert straight.returncode == 0, straight.stderr[-3000:]
-    first = run_script(*common, "--total-timesteps", "1000", "--run-name", "b")
-    assert first.returncode == 0, first.stderr[-3000:]
+    straight, first = run_scripts((*common, "--total-timesteps", "3000", "--run-name", "a"),
+                                  (*common, "--total-timesteps", "1000", "--run-name", "b"))
+    assert straight.returncode == 0 and first.returncode == 0, (straight.stderr + first.stderr)[-3000:]
     resumed = run_script("gail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "3000")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     rows = read_csv(tmp_path / "a")
@@ -1301,7 +1315,10 @@ def test_gail_and_pofd_smoke_runs_write_the_csv_and_resume_exactly(tmp_path, poo
     drop = ("steps_per_second", "time")
     assert ([{k: v for k, v in r.items() if k not in drop} for r in rows]
             == [{k: v for k, v in r.items() if k not in drop} for r in read_csv(tmp_path / "b")])
-    assert_one_line_error(run_script("gail.py", "--resume", str(tmp_path / "b"), "--max-kl", "0.05"))
+    import gail
+    import plumbing
+    gail_main = lambda argv: plumbing.run_main("gail.py", gail.train, gail.parse_args(argv))  # noqa: E731
+    assert_one_line_error(main_in_process(gail_main, ["--resume", str(tmp_path / "b"), "--max-kl", "0.05"], capsys))
 
 
 def test_gail_imitates_a_good_teacher_on_a_small_task(tmp_path):
