@@ -332,5 +332,9 @@ def train(args):
     return stop.exit_code
 
 
+def main(argv=None):
+    return plumbing.run_main("gail.py", train, parse_args(argv))
+
+
 if __name__ == "__main__":
-    sys.exit(plumbing.run_main("gail.py", train, parse_args()))
+    sys.exit(main())

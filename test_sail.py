@@ -1316,9 +1316,7 @@ def test_gail_and_pofd_smoke_runs_write_the_csv_and_resume_exactly(tmp_path, poo
     assert ([{k: v for k, v in r.items() if k not in drop} for r in rows]
             == [{k: v for k, v in r.items() if k not in drop} for r in read_csv(tmp_path / "b")])
     import gail
-    import plumbing
-    gail_main = lambda argv: plumbing.run_main("gail.py", gail.train, gail.parse_args(argv))  # noqa: E731
-    assert_one_line_error(main_in_process(gail_main, ["--resume", str(tmp_path / "b"), "--max-kl", "0.05"], capsys))
+    assert_one_line_error(main_in_process(gail.main, ["--resume", str(tmp_path / "b"), "--max-kl", "0.05"], capsys))
 
 
 def test_gail_imitates_a_good_teacher_on_a_small_task(tmp_path):
