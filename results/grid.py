@@ -79,6 +79,10 @@ GRIDS = {
                           "sail-rrd1-rate": ("sail.py", [*OFF_POLICY, "--return-decomposition", "1",
                                                          "--decomposition-unit", "rate"]),
                           "rrd": ("sail.py", [*OFF_POLICY, "--algo", "rrd"])}, [1, 2, 3]),
+    # the authors' released networks and step size (400-300 hidden units, Adam lr 1e-3), on top of SAIL's defaults
+    "learning-authors": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                             {"sail-authors": ("sail.py", [*OFF_POLICY, "--lr", "0.001", "--hidden", "400", "300"])},
+                             [1, 2, 3]),
     # LayerNorm in the critics (as RLPD), on top of SAIL's defaults
     "learning-ln": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                         {"sail-ln": ("sail.py", [*OFF_POLICY, "--critic-layer-norm"])}, [1, 2, 3]),
