@@ -150,8 +150,8 @@ def parse_args(argv=None):
                    "seen per step of the env's time limit, to the critic reward; 0: off (rrd: 1)")
     g.add_argument("--decomposition-unit", choices=["range", "rate"], default="range", help="what the learned "
                    "reward is divided by: range = the range of episodic returns seen over the env's time limit; rate "
-                   "= the range of per-step returns (return / length) seen, the same where every episode runs to the "
-                   "limit and smaller where episodes end early, where range's unit lets r outweigh D's reward")
+                   "= the range of per-step returns (return / length) seen: the same where every episode runs to the "
+                   "limit, a larger unit where episodes end early, where range's unit lets r outweigh D's reward")
     g.add_argument("--decomposition-subset", type=positive_int, default=64, help="steps drawn from each episode "
                    "per reward-model minibatch (RRD's K); --batch-size / K episodes per minibatch")
     g.add_argument("--time-feature", action=argparse.BooleanOptionalAction, default=True, help="append 1 - t/T to obs")
