@@ -93,7 +93,8 @@ def parse_args(argv=None):
     g.add_argument("--seed", type=int, default=1, help="seed of env, action space, numpy and torch")
     g.add_argument("--total-timesteps", type=positive_int, default=1_000_000, help="env steps of the run")
     g.add_argument("--learning-starts", type=positive_int, default=10_000,
-                   help="uniformly random steps that initialise R_B before any update")
+                   help="uniformly random steps that initialise R_B before any update (with the return bonus "
+                   "or decomposition, until an episode has ended too)")
     g.add_argument("--eval-freq", type=positive_int, default=10_000, help="env steps between evaluations of the "
                    "deterministic policy")
     g.add_argument("--eval-episodes", type=positive_int, default=5, help="episodes per evaluation")
@@ -463,6 +464,13 @@ def train(args):
         cpu_kernels.apply(s.kernels, [*agent.networks(), disc, *([reward_model] if reward_model else [])])
         ranked = args.return_bonus > 0 and args.return_scale == "rank"  # kept sorted, for scale_returns
         sorted_returns = self_buffer.sorted_episode_returns().to(device) if ranked else None
+        needs_returns = args.return_bonus > 0 or args.return_decomposition > 0
+
+        def learning(step):
+            """After the warm-up, which goes on until one episode has ended where the return bonus or
+            decomposition needs an episodic return (an env whose episodes outlast --learning-starts)."""
+            return step >= args.learning_starts and not (needs_returns and math.isnan(s.train_episodic_return))
+        was_learning = learning(s.global_step)
 
         def count_time():  # training seconds since the last call (evaluations are not counted)
             nonlocal clock
@@ -487,7 +495,7 @@ def train(args):
             s.global_step += 1
 
             # 1. act: uniformly random while R_B is initialised, then the actor plus Gaussian noise
-            if s.global_step <= args.learning_starts:
+            if not learning(s.global_step - 1):
                 action = env.action_space.sample()
             else:
                 action = agent.explore(obs, args.exploration_noise, rng)
@@ -521,10 +529,11 @@ def train(args):
                 done = (s.global_step - s.first_promotion_step) / max(args.alpha_anneal_steps, 1)
                 s.alpha = args.alpha * max(0.0, 1.0 - done) if args.alpha_anneal_steps else 0.0
 
-            if s.global_step >= args.learning_starts:
+            if learning(s.global_step):
                 # 3. discriminator, Eq. (4): teacher samples vs the whole R_B (off-policy), or recent ones
-                if use_demos and (s.global_step - args.learning_starts) % args.disc_freq == 0:
+                if use_demos and (not was_learning or (s.global_step - args.learning_starts) % args.disc_freq == 0):
                     stats.update(train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args))
+                was_learning = True
 
                 # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)
                 if s.global_step % args.update_every == 0:
