@@ -1,0 +1,65 @@
+"""The early-end probe: which of a run's evaluation episodes end before the time limit, and how.
+
+    python results/early_ends.py RUN_DIR [--episodes 20] [--seed 1000] [--target]
+
+RUN_DIR is a sail.py run folder (config.json and checkpoint.pt). Plays --episodes episodes of
+its deterministic actor (--target: its Polyak-averaged target actor) and prints, for each, the
+return, the length and the range of the first observation entry, which on Ant-v5, Hopper-v5 and
+Walker2d-v5 is the torso's height (their observations leave out the x position), and on Ant-v5
+the steps its torso spent upside down (entries 1-4 are the torso's orientation quaternion w, x,
+y, z: the body's up axis points down where 1 - 2(x^2 + y^2) < 0); then the height range over
+the run's teacher episodes. Gymnasium's locomotion envs end an episode early when the body leaves
+its healthy range (Ant-v5: a torso height outside [0.2, 1.0]; lying upside down is inside it).
+"""
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from buffers import default_demo_path  # noqa: E402
+from envs import make_env, rollout  # noqa: E402
+from plumbing import load_checkpoint  # noqa: E402
+from td3 import TD3  # noqa: E402
+
+p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+p.add_argument("run_dir")
+p.add_argument("--episodes", type=int, default=20, help="episodes to play")
+p.add_argument("--seed", type=int, default=1000, help="seed of the probe's env")
+p.add_argument("--target", action="store_true", help="play the target actor instead of the actor")
+args = p.parse_args()
+for name in ("config.json", "checkpoint.pt"):
+    if not os.path.isfile(os.path.join(args.run_dir, name)):
+        p.error(f"{args.run_dir} has no {name}: give a run folder made by sail.py")
+config = json.load(open(os.path.join(args.run_dir, "config.json")))
+torch.set_num_threads(1)
+torch.set_grad_enabled(False)
+env = make_env(config["env"], args.seed, time_feature=config["time_feature"], absorbing=config["absorbing"])
+agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low, env.action_space.high,
+            hidden=config["hidden"], critic_layer_norm=config.get("critic_layer_norm", False))
+load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), {"agent": agent})
+policy = (lambda o: agent.act(o, target=True)) if args.target else agent.act
+
+returns, early = [], 0
+for i in range(args.episodes):
+    episode = rollout(env, policy)
+    height = np.concatenate([episode["observations"][:, 0], episode["next_observations"][-1:, 0]])
+    returns.append(episode["episodic_return"])
+    early += episode["terminated"]
+    ending = f"ended early, first entry {height[-1]:.2f} at the end" if episode["terminated"] else "ran to the limit"
+    if config["env"].startswith("Ant"):
+        quaternion = episode["observations"][:, 1:5]
+        ending += f", {int((1 - 2 * (quaternion[:, 1] ** 2 + quaternion[:, 2] ** 2) < 0).sum())} steps upside down"
+    print(f"episode {i + 1}: return {returns[-1]:.1f}, length {len(episode['actions'])}, first entry "
+          f"{height.min():.2f}-{height.max():.2f}, {ending}")
+print(f"{config['env']}, {'target actor' if args.target else 'actor'}: mean return {np.mean(returns):.1f} over "
+      f"{args.episodes} episodes, {early} ended early (env seed {args.seed})")
+with np.load(config.get("demos") or default_demo_path(config["env"]), allow_pickle=False) as demos:
+    ends = np.cumsum(demos["episode_lengths"])[:config["num_demos"]]
+    first = demos["observations"][:ends[-1], 0]
+    print(f"teacher ({config['num_demos']} episodes): first entry {first.min():.2f}-{first.max():.2f}, "
+          f"lengths {', '.join(str(n) for n in demos['episode_lengths'][:config['num_demos']])}")
