@@ -965,13 +965,13 @@ def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_result(tmp_path
 
 
 def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
-    proc = run_script(os.path.join("results", "early_ends.py"), str(straight_run), "--episodes", "3")
+    probe = os.path.join("results", "early_ends.py")
+    proc, missing = run_scripts((probe, str(straight_run), "--episodes", "3"), (probe, str(tmp_path)))
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.splitlines()
     episodes = [line for line in lines if line.startswith("episode ")]
     assert len(episodes) == 3 and all("ended early" in line for line in episodes)  # a barely trained hopper falls
     assert "3 ended early" in lines[-2] and lines[-1].startswith("teacher (1 episodes): first entry")
-    missing = run_script(os.path.join("results", "early_ends.py"), str(tmp_path))
     assert missing.returncode == 2 and "has no config.json" in missing.stderr
 
 
