@@ -94,7 +94,7 @@ def parse_args(argv=None):
     g.add_argument("--total-timesteps", type=positive_int, default=1_000_000, help="env steps of the run")
     g.add_argument("--learning-starts", type=positive_int, default=10_000,
                    help="uniformly random steps that initialise R_B before any update (with the return bonus "
-                   "or decomposition, until an episode has ended too)")
+                   "or decomposition, also until an episode has ended and two different returns were seen)")
     g.add_argument("--eval-freq", type=positive_int, default=10_000, help="env steps between evaluations of the "
                    "deterministic policy")
     g.add_argument("--eval-episodes", type=positive_int, default=5, help="episodes per evaluation")
@@ -467,9 +467,11 @@ def train(args):
         needs_returns = args.return_bonus > 0 or args.return_decomposition > 0
 
         def learning(step):
-            """After the warm-up, which goes on until one episode has ended where the return bonus or
-            decomposition needs an episodic return (an env whose episodes outlast --learning-starts)."""
-            return step >= args.learning_starts and not (needs_returns and math.isnan(s.train_episodic_return))
+            """After the warm-up. Where the return bonus or decomposition is on, it also waits for an
+            episode of its own to end and for two different returns seen (R_E's count), since both
+            scale by their range (an env whose episodes outlast --learning-starts)."""
+            return step >= args.learning_starts and not (needs_returns and (
+                math.isnan(s.train_episodic_return) or s.return_range[0] >= s.return_range[1]))
         was_learning = learning(s.global_step)
 
         def count_time():  # training seconds since the last call (evaluations are not counted)

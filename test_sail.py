@@ -849,17 +849,18 @@ def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
         assert absorbing.sum() > 0 and (buffer[1][absorbing] == 0).all()
 
 
-def test_warm_up_waits_for_an_episodic_return_where_the_critic_reward_needs_one(tmp_path):
-    """Pendulum's episodes last 200 steps, longer than --learning-starts 50: the return bonus
-    (IRCR) has no episodic return to give before step 200, so its updates start there; TD3 on the
-    env reward needs none and starts at 50."""
-    flags = ["--env", "Pendulum-v1", "--total-timesteps", "400", "--learning-starts", "50", "--eval-freq", "400",
+def test_warm_up_waits_for_episodic_returns_where_the_critic_reward_needs_them(tmp_path):
+    """Pendulum's episodes last 200 steps, longer than --learning-starts 50. The return bonus
+    (IRCR, no teacher) scales by the range of returns seen, which has two ends once a second
+    episode has ended, at step 400: its updates start there. TD3 on the env reward needs no
+    return and starts at 50."""
+    flags = ["--env", "Pendulum-v1", "--total-timesteps", "600", "--learning-starts", "50", "--eval-freq", "600",
              "--output-dir", str(tmp_path), *TINY]
     ircr, td3 = run_scripts(("sail.py", *flags, "--algo", "ircr", "--run-name", "ircr"),
                             ("sail.py", *flags, "--algo", "td3", "--run-name", "td3"))
     assert ircr.returncode == 0 and td3.returncode == 0, (ircr.stderr + td3.stderr)[-3000:]
-    assert int(read_csv(tmp_path / "ircr")[-1]["updates"]) == 400 - 200 + 1
-    assert int(read_csv(tmp_path / "td3")[-1]["updates"]) == 400 - 50 + 1
+    assert int(read_csv(tmp_path / "ircr")[-1]["updates"]) == 600 - 400 + 1
+    assert int(read_csv(tmp_path / "td3")[-1]["updates"]) == 600 - 50 + 1
 
 
 def test_promotion_switches_alpha_inside_the_loop(tmp_path, poor_hopper_demos):
