@@ -10,6 +10,8 @@ the steps its torso spent upside down (entries 1-4 are the torso's orientation q
 y, z: the body's up axis points down where 1 - 2(x^2 + y^2) < 0); then the height range over
 the run's teacher episodes. Gymnasium's locomotion envs end an episode early when the body leaves
 its healthy range (Ant-v5: a torso height outside [0.2, 1.0]; lying upside down is inside it).
+An episode ended early if it is shorter than the time limit (with DAC's absorbing states, one step
+longer than the fall; the absorbing state is left out of the ranges).
 """
 
 import argparse
@@ -47,12 +49,16 @@ policy = (lambda o: agent.act(o, target=True)) if args.target else agent.act
 returns, early = [], 0
 for i in range(args.episodes):
     episode = rollout(env, policy)
-    height = np.concatenate([episode["observations"][:, 0], episode["next_observations"][-1:, 0]])
+    states = np.concatenate([episode["observations"], episode["next_observations"][-1:]])
+    if config["absorbing"]:  # DAC's absorbing state (indicator 1) follows an early end: not a body state
+        states = states[states[:, -1] == 0.0]
+    height = states[:, 0]
+    ended_early = len(episode["actions"]) < env.max_episode_steps
     returns.append(episode["episodic_return"])
-    early += episode["terminated"]
-    ending = f"ended early, first entry {height[-1]:.2f} at the end" if episode["terminated"] else "ran to the limit"
+    early += ended_early
+    ending = f"ended early, first entry {height[-1]:.2f} at the end" if ended_early else "ran to the limit"
     if config["env"].startswith("Ant"):
-        quaternion = episode["observations"][:, 1:5]
+        quaternion = states[:, 1:5]
         ending += f", {int((1 - 2 * (quaternion[:, 1] ** 2 + quaternion[:, 2] ** 2) < 0).sum())} steps upside down"
     print(f"episode {i + 1}: return {returns[-1]:.1f}, length {len(episode['actions'])}, first entry "
           f"{height.min():.2f}-{height.max():.2f}, {ending}")
