@@ -88,6 +88,12 @@ GRIDS = {
     # LayerNorm in the critics (as RLPD), on top of SAIL's defaults
     "learning-ln": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                         {"sail-ln": ("sail.py", [*OFF_POLICY, "--critic-layer-norm"])}, [1, 2, 3]),
+    # what R_E keeps: its best 2 episodes of 1000 steps instead of 10 (the threshold is then the second
+    # best return seen), on top of the LayerNorm critics, whose HalfCheetah run stalled with a full R_E
+    "learning-teacher-capacity": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                                      {"sail-ln-cap2000": ("sail.py", [*OFF_POLICY, "--critic-layer-norm",
+                                                                       "--teacher-capacity", "2000"])},
+                                      [1, 2, 3]),
     # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
