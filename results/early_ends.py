@@ -11,7 +11,9 @@ y, z: the body's up axis points down where 1 - 2(x^2 + y^2) < 0); then the heigh
 the run's teacher episodes. Gymnasium's locomotion envs end an episode early when the body leaves
 its healthy range (Ant-v5: a torso height outside [0.2, 1.0]; lying upside down is inside it).
 An episode ended early if it is shorter than the time limit (with DAC's absorbing states, one step
-longer than the fall; the absorbing state is left out of the ranges).
+longer than the fall; the absorbing state is left out of the ranges). Last, the run's own training
+episodes (those in its replay buffer R_B, played with exploration noise), per --window env steps:
+how many ended early, their lengths and the mean return.
 """
 
 import argparse
@@ -33,6 +35,7 @@ p.add_argument("run_dir")
 p.add_argument("--episodes", type=int, default=20, help="episodes to play")
 p.add_argument("--seed", type=int, default=1000, help="seed of the probe's env")
 p.add_argument("--target", action="store_true", help="play the target actor instead of the actor")
+p.add_argument("--window", type=int, default=50_000, help="env steps per line of the training episodes' summary")
 args = p.parse_args()
 for name in ("config.json", "checkpoint.pt"):
     if not os.path.isfile(os.path.join(args.run_dir, name)):
@@ -43,7 +46,7 @@ torch.set_grad_enabled(False)
 env = make_env(config["env"], args.seed, time_feature=config["time_feature"], absorbing=config["absorbing"])
 agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low, env.action_space.high,
             hidden=config["hidden"], critic_layer_norm=config.get("critic_layer_norm", False))
-load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), {"agent": agent})
+checkpoint = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), {"agent": agent})
 policy = (lambda o: agent.act(o, target=True)) if args.target else agent.act
 
 returns, early = [], 0
@@ -69,3 +72,20 @@ with np.load(config.get("demos") or default_demo_path(config["env"]), allow_pick
     first = demos["observations"][:ends[-1], 0]
     print(f"teacher ({config['num_demos']} episodes): first entry {first.min():.2f}-{first.max():.2f}, "
           f"lengths {', '.join(str(n) for n in demos['episode_lengths'][:config['num_demos']])}")
+
+# every transition of R_B carries its episode's start (its index in R_B), length and return (NaN: unfinished)
+self_buffer = checkpoint["self_buffer"]
+if "episode_starts" not in self_buffer:
+    print("training episodes: not kept in this checkpoint (R_B predates episode bounds: sail.py before 2026-11-24)")
+    sys.exit(0)
+starts, first = np.unique(self_buffer["episode_starts"].numpy(), return_index=True)
+lengths, episode_returns = self_buffer["episode_lengths"].numpy()[first], self_buffer["episode_returns"].numpy()[first]
+print(f"training episodes (R_B, exploration noise {config['exploration_noise']}), by the R_B index they started at:")
+for start in range(0, int(starts.max()) + 1, args.window):
+    window = (starts >= start) & (starts < start + args.window) & ~np.isnan(episode_returns)
+    if not window.any():
+        continue
+    short = np.sort(lengths[window & (lengths < env.max_episode_steps)])
+    print(f"  {start}-{start + args.window}: {window.sum()} episodes, {len(short)} ended early"
+          f"{' (lengths ' + ', '.join(map(str, short[:10])) + (', ...' if len(short) > 10 else '') + ')' if len(short) else ''}, "
+          f"mean return {episode_returns[window].mean():.1f}")
