@@ -37,6 +37,8 @@ p.add_argument("--seed", type=int, default=1000, help="seed of the probe's env")
 p.add_argument("--target", action="store_true", help="play the target actor instead of the actor")
 p.add_argument("--window", type=int, default=50_000, help="env steps per line of the training episodes' summary")
 args = p.parse_args()
+if args.episodes <= 0 or args.window <= 0:
+    p.error("--episodes and --window must be positive")
 for name in ("config.json", "checkpoint.pt"):
     if not os.path.isfile(os.path.join(args.run_dir, name)):
         p.error(f"{args.run_dir} has no {name}: give a run folder made by sail.py")
@@ -86,6 +88,6 @@ for start in range(0, int(starts.max()) + 1, args.window):
     if not window.any():
         continue
     short = np.sort(lengths[window & (lengths < env.max_episode_steps)])
-    print(f"  {start}-{start + args.window}: {window.sum()} episodes, {len(short)} ended early"
-          f"{' (lengths ' + ', '.join(map(str, short[:10])) + (', ...' if len(short) > 10 else '') + ')' if len(short) else ''}, "
+    listed = f" (lengths {', '.join(map(str, short[:10]))}{', ...' if len(short) > 10 else ''})" if len(short) else ""
+    print(f"  {start}-{start + args.window}: {window.sum()} episodes, {len(short)} ended early{listed}, "
           f"mean return {episode_returns[window].mean():.1f}")
