@@ -27,18 +27,16 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from buffers import default_demo_path  # noqa: E402
 from envs import make_env, rollout  # noqa: E402
-from plumbing import load_checkpoint  # noqa: E402
+from plumbing import load_checkpoint, positive_int  # noqa: E402
 from td3 import TD3  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
-p.add_argument("--episodes", type=int, default=20, help="episodes to play")
+p.add_argument("--episodes", type=positive_int, default=20, help="episodes to play")
 p.add_argument("--seed", type=int, default=1000, help="seed of the probe's env")
 p.add_argument("--target", action="store_true", help="play the target actor instead of the actor")
-p.add_argument("--window", type=int, default=50_000, help="env steps per line of the training episodes' summary")
+p.add_argument("--window", type=positive_int, default=50_000, help="env steps per line of the training episodes' summary")
 args = p.parse_args()
-if args.episodes <= 0 or args.window <= 0:
-    p.error("--episodes and --window must be positive")
 for name in ("config.json", "checkpoint.pt"):
     if not os.path.isfile(os.path.join(args.run_dir, name)):
         p.error(f"{args.run_dir} has no {name}: give a run folder made by sail.py")
