@@ -94,6 +94,12 @@ GRIDS = {
                                       {"sail-ln-cap2000": ("sail.py", [*OFF_POLICY, "--critic-layer-norm",
                                                                        "--teacher-capacity", "2000"])},
                                       [1, 2, 3]),
+    # the LayerNorm critics (fastest start) together with the rate-unit return decomposition (largest
+    # HalfCheetah and Swimmer gains), on top of SAIL's defaults
+    "learning-ln-rrd": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                            {"sail-ln-rrd1-rate": ("sail.py", [*OFF_POLICY, "--critic-layer-norm",
+                                                               "--return-decomposition", "1",
+                                                               "--decomposition-unit", "rate"])}, [1, 2, 3]),
     # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
