@@ -53,13 +53,27 @@ class ReplayBuffer:
         self.ptr = (self.ptr + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
-    def sample(self, batch_size, with_returns=False):
-        """Uniform batch (obs, actions, rewards, next_obs, terminated) from the whole buffer; with
-        `with_returns`, from the finished episodes only, and their episodic returns as well."""
-        if not with_returns:
-            return self.gather(torch.randint(0, self.size, (batch_size,)))
-        idx = self.finished_indices(batch_size)
-        return self.gather(idx), self.episode_returns[idx]
+    def sample(self, batch_size):
+        """Uniform batch (obs, actions, rewards, next_obs, terminated) from the whole buffer."""
+        return self.gather(torch.randint(0, self.size, (batch_size,)))
+
+    def sample_steps(self, batch_size, n_step, with_returns=False):
+        """A batch of runs of up to `n_step` consecutive transitions of one episode, each from a
+        uniformly drawn first one (with `with_returns`, drawn from the finished episodes only):
+        (obs, actions, rewards, next_obs, terminated) of shape (batch_size, n_step, ...), a mask
+        that is 1 for the steps inside the first one's episode (R_B's newest step ends a running
+        one), and with `with_returns` the episodic returns (else None)."""
+        idx = self.finished_indices(batch_size) if with_returns else torch.randint(0, self.size, (batch_size,))
+        window, mask = step_window(idx, self.steps_left(idx) if n_step > 1 else None, n_step, self.capacity)
+        return self.gather(window), mask, (self.episode_returns[idx] if with_returns else None)
+
+    def steps_left(self, idx):
+        """How many transitions follow each of `idx` in its episode, as far as R_B holds them: to
+        the episode's last step if it has ended, else to the newest transition."""
+        finished = ~self.episode_returns[idx].isnan()
+        last = torch.where(finished, self.episode_starts[idx] + self.episode_lengths[idx] - 1,
+                           torch.tensor(self.ptr - 1))
+        return (last - idx) % self.capacity
 
     def finished_indices(self, n):
         """n uniform indices of transitions whose episode has ended."""
@@ -173,6 +187,7 @@ class TeacherBuffer:
             self.episodes.remove(worst)
         self._flat = [torch.cat(parts) for parts in zip(*(data for _, data in self.episodes))]
         self._flat_returns = torch.cat([torch.full((len(data[0]),), ret) for ret, data in self.episodes])
+        self._flat_steps_left = torch.cat([torch.arange(len(data[0]) - 1, -1, -1) for _, data in self.episodes])
 
     def promote(self, episodic_return, obs, actions, next_obs, terminated):
         """Adds the episode if it beats the threshold; returns whether it did."""
@@ -181,12 +196,17 @@ class TeacherBuffer:
         self.add_episode(episodic_return, obs, actions, next_obs, terminated)
         return True
 
-    def sample(self, batch_size, with_returns=False):
-        """Uniform batch (obs, actions, next_obs, terminated) over the kept transitions; with
-        `with_returns`, the episodic returns of their episodes as well."""
+    def sample(self, batch_size):
+        """Uniform batch (obs, actions, next_obs, terminated) over the kept transitions."""
         idx = torch.randint(0, len(self._flat[0]), (batch_size,))
-        batch = tuple(t[idx] for t in self._flat)
-        return (batch, self._flat_returns[idx]) if with_returns else batch
+        return tuple(t[idx] for t in self._flat)
+
+    def sample_steps(self, batch_size, n_step, with_returns=False):
+        """As ReplayBuffer.sample_steps (without env rewards): runs of up to `n_step` consecutive
+        transitions of one kept episode, the mask of those inside it, the episodic returns or None."""
+        idx = torch.randint(0, len(self._flat[0]), (batch_size,))
+        window, mask = step_window(idx, self._flat_steps_left[idx] if n_step > 1 else None, n_step, len(self._flat[0]))
+        return tuple(t[window] for t in self._flat), mask, (self._flat_returns[idx] if with_returns else None)
 
     def state_dict(self):
         return {"capacity": self.capacity, "episodes": self.episodes}
@@ -210,24 +230,36 @@ def load_teacher_buffer(path, env_id, env, num_demos, capacity, time_feature, ab
     return teacher_buffer
 
 
-def mixed_batch(teacher_buffer, self_buffer, batch_size, alpha, with_returns=False):
+def step_window(first, steps_left, n_step, size):
+    """Indices (len(first), n_step) of each transition in `first` and the n_step - 1 after it
+    (modulo `size`), and a float mask that is 1 where that step is still in the first one's episode
+    (`steps_left`: how many steps follow each first one there; not needed for one step)."""
+    if n_step == 1:
+        return first[:, None], torch.ones(len(first), 1)
+    offsets = torch.arange(n_step)
+    return (first[:, None] + offsets) % size, (offsets <= steps_left[:, None]).float()
+
+
+def mixed_batch(teacher_buffer, self_buffer, batch_size, alpha, with_returns=False, n_step=1):
     """The mixture alpha * R_E + (1 - alpha) * R_B (paper, d_mix of Eq. qgrad/pigrad).
 
-    round(alpha * batch_size) transitions come from the teacher buffer and the rest from the
-    self buffer. Returns (obs, actions, next_obs, terminated), the env rewards of the self
-    part (teacher transitions carry no env reward: the learner never needs one) and, with
-    `with_returns`, the episodic return of each transition's episode (else None).
+    round(alpha * batch_size) rows come from the teacher buffer and the rest from the self buffer;
+    a row is a run of up to `n_step` consecutive steps of one episode (see `sample_steps`).
+    Returns (obs, actions, next_obs, terminated) of shape (batch_size, n_step, ...), the env
+    rewards of the self rows (teacher transitions carry no env reward: the learner never needs
+    one), the mask of steps inside the episode and, with `with_returns`, the episodic return of
+    each row's episode (else None).
     """
     num_teacher = round(alpha * batch_size)
-    sampled = self_buffer.sample(batch_size - num_teacher, with_returns)
-    (obs, actions, rewards, next_obs, terminated), returns = sampled if with_returns else (sampled, None)
+    (obs, actions, rewards, next_obs, terminated), mask, returns = self_buffer.sample_steps(
+        batch_size - num_teacher, n_step, with_returns)
     if num_teacher == 0:
-        return (obs, actions, next_obs, terminated), rewards, returns
-    sampled = teacher_buffer.sample(num_teacher, with_returns)
-    (t_obs, t_actions, t_next_obs, t_terminated), t_returns = sampled if with_returns else (sampled, None)
+        return (obs, actions, next_obs, terminated), rewards, mask, returns
+    (t_obs, t_actions, t_next_obs, t_terminated), t_mask, t_returns = teacher_buffer.sample_steps(
+        num_teacher, n_step, with_returns)
     batch = (torch.cat([t_obs, obs]), torch.cat([t_actions, actions]),
              torch.cat([t_next_obs, next_obs]), torch.cat([t_terminated, terminated]))
-    return batch, rewards, (torch.cat([t_returns, returns]) if with_returns else None)
+    return batch, rewards, torch.cat([t_mask, mask]), (torch.cat([t_returns, returns]) if with_returns else None)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -82,7 +82,7 @@ CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "
 RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
 PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
-             "decomposition_unit": "range"}
+             "decomposition_unit": "range", "n_step": 1}
 
 
 def parse_args(argv=None):
@@ -132,6 +132,8 @@ def parse_args(argv=None):
     g.add_argument("--policy-delay", type=positive_int, default=2, help="critic updates per actor update")
     g.add_argument("--exploration-noise", type=non_negative_float, default=0.1, help="std of Gaussian action noise")
     g.add_argument("--buffer-size", type=positive_int, default=1_000_000, help="capacity of R_B in transitions")
+    g.add_argument("--n-step", type=positive_int, default=1, help="the critic's target sums the rewards of up to "
+                   "N consecutive steps of the transition's episode before it bootstraps (n-step returns); 1 is TD3's")
     g.add_argument("--critic-layer-norm", action="store_true", help="LayerNorm before each hidden ReLU of the "
                    "critics (as RLPD), against Q values that run away from the data")
     g.add_argument("--update-every", type=positive_int, default=1,
@@ -359,31 +361,43 @@ def decomposition_unit(kind, return_range, rate_range, episode_steps):
 def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_range=None, sorted_returns=None,
                reward_model=None, decomposition_unit=1.0):
     """Eqs. (7) and (8): one TD3 step on a batch from alpha R_E + (1 - alpha) R_B, rewarded by D."""
-    batch, env_rewards, episode_returns = mixed_batch(teacher_buffer, self_buffer, args.batch_size, alpha,
-                                                      with_returns=args.return_bonus > 0)
-    obs, actions, next_obs, terminated = (x.to(agent.device) for x in batch)
+    batch, env_rewards, mask, episode_returns = mixed_batch(teacher_buffer, self_buffer, args.batch_size, alpha,
+                                                            with_returns=args.return_bonus > 0, n_step=args.n_step)
+    # each row: up to --n-step consecutive steps of one episode (one step by default), flattened to
+    # (rows x steps, dim) for the reward networks
+    obs, actions, next_obs, terminated, mask = (x.to(agent.device) for x in (*batch, mask))
+    steps = lambda x: x.flatten(0, 1)  # noqa: E731
     if args.reward == "env":  # the TD3-sparse baseline: the env's own (sparse episodic) reward
         rewards = env_rewards.to(agent.device)
     elif args.reward == "none":  # IRCR: the return bonus below is the whole reward
-        rewards = torch.zeros_like(env_rewards, device=agent.device)
+        rewards = torch.zeros_like(mask)
     else:
-        rewards = shaped_reward(disc, obs, actions, args.reward)
+        rewards = shaped_reward(disc, steps(obs), steps(actions), args.reward).view_as(mask)
     if args.return_bonus > 0:
         # IRCR (Gangwani et al. 2020): every step of an episode is credited with the episode's
         # return, so the critic learns which actions lead to better episodes, beyond imitating R_E
         rewards = rewards + args.return_bonus * scale_returns(episode_returns.to(agent.device), args.return_scale,
-                                                              return_range, sorted_returns)
+                                                              return_range, sorted_returns)[:, None]
     if args.return_decomposition > 0:
         # RRD's learned per-step reward in units of the per-step returns seen (decomposition_unit), so
         # that its weight means the same whatever the env's reward scale
         with torch.no_grad():
-            learned = reward_model(obs, actions, next_obs)
+            learned = reward_model(steps(obs), steps(actions), steps(next_obs)).view_as(mask)
         rewards = rewards + args.return_decomposition * learned / decomposition_unit
+    # n-step return: the discounted rewards of the row's steps inside its episode, then the critic
+    # bootstraps from the last of them, gamma^m on for m steps (uncorrected for the policy's change
+    # since the steps were taken, as D4PG and Rainbow); m = 1 is Eq. (7)'s one-step target
+    n_step_return = (rewards * mask * args.gamma ** torch.arange(args.n_step, device=agent.device)).sum(1)
+    last = mask.sum(1).long() - 1
+    rows = torch.arange(len(last), device=agent.device)
+    next_obs, terminated = next_obs[rows, last], terminated[rows, last]
     # DAC: the absorbing state's only action is zero (as the agent and the demos act there, and as
     # in DAC's code). With the actor's action instead, the critic is asked for Q at actions it never
     # saw in that state, the actor pushes them up, and the self-loop multiplies that by 1/(1 - gamma).
     next_action_mask = 1.0 - next_obs[:, -1:] if args.absorbing else None
-    return agent.update(obs, actions, rewards, next_obs, terminated, next_action_mask) | {"reward_mean": rewards.mean()}
+    losses = agent.update(obs[:, 0], actions[:, 0], n_step_return, next_obs, terminated, next_action_mask,
+                          discount=args.gamma ** (last + 1.0))
+    return losses | {"reward_mean": rewards[:, 0].mean()}
 
 
 # ---------------------------------------------------------------------------------------------

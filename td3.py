@@ -116,13 +116,16 @@ class TD3:
         noise = rng.normal(0.0, exploration_noise * (high - low) / 2)
         return np.clip(self.act(obs) + noise, low, high).astype(np.float32)
 
-    def update(self, obs, actions, rewards, next_obs, terminated, next_action_mask=None):
+    def update(self, obs, actions, rewards, next_obs, terminated, next_action_mask=None, discount=None):
         """One TD3 step on a batch; `rewards` come from the caller. Returns detached losses.
 
         `terminated` is 1 only for true terminal states: a time-limit truncation is not one,
         so the target bootstraps through it. `next_action_mask` (0 or 1 per row, optional)
         multiplies the target's next action: 0 where only the zero action exists in s'.
+        `discount` (per row, optional; default gamma) is gamma^m where `rewards` sum m steps
+        and `next_obs` is the state m steps on (n-step returns).
         """
+        discount = self.gamma if discount is None else discount
         with torch.no_grad():
             noise = (torch.randn_like(actions) * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)
             next_actions = (self.actor_target(next_obs) + noise).clamp(self.action_low, self.action_high)
@@ -130,7 +133,7 @@ class TD3:
                 next_actions = next_actions * next_action_mask
             # clipped double Q: y = r + gamma * (1 - done) * min_i Q'_i(s', a')
             next_q = torch.min(*self.critic_target(next_obs, next_actions))
-            td_target = rewards + self.gamma * (1.0 - terminated) * next_q
+            td_target = rewards + discount * (1.0 - terminated) * next_q
         q1, q2 = self.critic(obs, actions)
         critic_loss = F.mse_loss(q1, td_target) + F.mse_loss(q2, td_target)
         self.critic_optimizer.zero_grad(set_to_none=True)

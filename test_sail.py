@@ -224,14 +224,15 @@ def test_episode_returns_mark_finished_episodes_only_and_wrap():
             buffer.end_episode(start, 10.0 * (i // 4))
             start = buffer.ptr
     torch.manual_seed(0)
-    (obs, *_), returns = buffer.sample(2000, with_returns=True)
+    (obs, *_), _, returns = buffer.sample_steps(2000, 1, with_returns=True)
+    obs = obs[:, 0]
     assert set(obs[:, 0].tolist()) == set(range(3, 12))  # 0-2 overwritten, 12 still running
     torch.testing.assert_close(returns, 10.0 * (obs[:, 0] // 4))
     teacher = TeacherBuffer(capacity=100)
     teacher.add_episode(50.0, *episode_arrays(0, 40))
     teacher.add_episode(80.0, *episode_arrays(1, 40))
-    (obs, *_), returns = teacher.sample(500, with_returns=True)
-    torch.testing.assert_close(returns, torch.where(obs[:, 0] == 1, 80.0, 50.0))
+    (obs, *_), _, returns = teacher.sample_steps(500, 1, with_returns=True)
+    torch.testing.assert_close(returns, torch.where(obs[:, 0, 0] == 1, 80.0, 50.0))
     state = buffer.state_dict()
     copy = ReplayBuffer(obs_dim=1, act_dim=1, capacity=10)
     copy.load_state_dict(state)
@@ -275,11 +276,40 @@ def test_mixed_sampling_proportions(alpha):
     self_buffer = ReplayBuffer(obs_dim=3, act_dim=2, capacity=100)
     for _ in range(50):
         self_buffer.add(np.zeros(3), np.zeros(2), 0.0, np.ones(3), 0.0)
-    (obs, actions, next_obs, terminated), rewards, returns = mixed_batch(teacher, self_buffer, 256, alpha)
-    assert returns is None
-    assert obs.shape == (256, 3) and actions.shape == (256, 2) and terminated.shape == (256,)
-    assert int((obs[:, 0] == 1.0).sum()) == round(alpha * 256)
+    (obs, actions, next_obs, terminated), rewards, mask, returns = mixed_batch(teacher, self_buffer, 256, alpha)
+    assert returns is None and (mask == 1).all()
+    assert obs.shape == (256, 1, 3) and actions.shape == (256, 1, 2) and terminated.shape == (256, 1)
+    assert int((obs[:, 0, 0] == 1.0).sum()) == round(alpha * 256)
     assert len(rewards) == 256 - round(alpha * 256)
+
+
+def test_n_step_runs_stay_inside_one_episode_and_stop_at_the_newest_step():
+    buffer = ReplayBuffer(obs_dim=1, act_dim=1, capacity=10)
+    start = 0
+    for i in range(13):  # episodes 0-3, 4-7, 8-11 (wraps; 0-2 overwritten), 12 running
+        buffer.add([i], [0], float(i), [i + 1], float(i == 7))
+        if i % 4 == 3:
+            buffer.end_episode(start, 1.0)
+            start = buffer.ptr
+    torch.manual_seed(0)
+    (obs, _, rewards, next_obs, terminated), mask, _ = buffer.sample_steps(2000, 3)
+    assert obs.shape == (2000, 3, 1) and mask.shape == (2000, 3)
+    first = obs[:, 0, 0]
+    assert set(first.tolist()) == set(range(3, 13))
+    end = torch.where(first < 12, first // 4 * 4 + 3, 12)  # each first step's episode ends there (12: newest)
+    torch.testing.assert_close(mask.sum(1), torch.clamp(end - first + 1, max=3))
+    kept = mask.bool()
+    torch.testing.assert_close(obs[..., 0][kept], (first[:, None] + torch.arange(3))[kept])  # consecutive, in order
+    torch.testing.assert_close(rewards[kept], obs[..., 0][kept])
+    torch.testing.assert_close(next_obs[kept], obs[kept] + 1)
+    # R_E: runs end with their episode
+    teacher = TeacherBuffer(capacity=100)
+    teacher.add_episode(50.0, *episode_arrays(0, 5))
+    teacher.add_episode(80.0, *episode_arrays(1, 4))
+    (obs, *_), mask, returns = teacher.sample_steps(1000, 4, with_returns=True)
+    for run, kept in zip(obs[..., 0], mask.bool()):
+        assert len(set(run[kept].tolist())) == 1 and kept[0] and (kept[:-1] >= kept[1:]).all()
+    assert sorted(set(mask.sum(1).tolist())) == [1.0, 2.0, 3.0, 4.0]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -661,6 +691,7 @@ SMOKE = {
     "rrd": ["--algo", "rrd", "--decomposition-subset", "16"],
     "decomposition": ["--return-decomposition", "1", "--decomposition-subset", "16", "--decomposition-unit", "rate"],
     "critic-layer-norm": ["--critic-layer-norm", "--kernels", "onednn"],
+    "n-step": ["--n-step", "3", "--return-decomposition", "1", "--decomposition-subset", "16"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
 }
 
@@ -677,13 +708,13 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
     for bonus in (0.0, 2.0):
         torch.manual_seed(0)  # the same batch both times: the bonus draws no extra samples here
         args = argparse.Namespace(batch_size=64, reward="sail", return_bonus=bonus, return_scale="minmax",
-                                  absorbing=False, return_decomposition=0.0)
+                                  absorbing=False, return_decomposition=0.0, n_step=1, gamma=0.99)
         means[bonus] = float(td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args,
                                         return_range=(2.0, 12.0))["reward_mean"])
     assert means[2.0] - means[0.0] == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-5)
     # IRCR (--reward none): the bonus is the whole reward, D plays no part
     args = argparse.Namespace(batch_size=64, reward="none", return_bonus=2.0, return_scale="minmax", absorbing=False,
-                              return_decomposition=0.0)
+                              return_decomposition=0.0, n_step=1, gamma=0.99)
     ircr = td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
     assert float(ircr["reward_mean"]) == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-6)
     # return decomposition: a reward model that says 0.5 everywhere adds 3 * 0.5 / ((12 - 2) / 40) per step
@@ -697,6 +728,29 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
     assert float(rrd["reward_mean"]) == pytest.approx(3.0 * 0.5 / (10.0 / 40), abs=1e-5)
     # --decomposition-unit rate: per-step returns 0.5 to 3.0 seen, whatever the time limit
     assert decomposition_unit("rate", (2.0, 12.0), (0.5, 3.0), episode_steps=40) == pytest.approx(2.5)
+
+
+def test_n_step_target_sums_the_discounted_rewards_inside_the_episode_then_bootstraps():
+    import argparse
+    agent = TD3(obs_dim=1, act_dim=1, action_low=-np.ones(1), action_high=np.ones(1), hidden=(8, 8))
+    self_buffer = ReplayBuffer(obs_dim=1, act_dim=1, capacity=100)
+    for i in range(10):  # one episode, steps 0-9, terminated at its end
+        self_buffer.add([i], [0], 0.0, [i + 1], float(i == 9))
+    self_buffer.end_episode(0, 7.0)
+    seen = {}
+    agent.update = lambda obs, actions, rewards, next_obs, terminated, next_action_mask, discount: \
+        seen.update(obs=obs[:, 0], rewards=rewards, next_obs=next_obs[:, 0], terminated=terminated,
+                    discount=discount) or {}
+    # --reward none with the return bonus: every step's reward is (7 - 2) / (12 - 2) = 0.5
+    args = argparse.Namespace(batch_size=500, reward="none", return_bonus=1.0, return_scale="minmax", absorbing=False,
+                              return_decomposition=0.0, n_step=3, gamma=0.9)
+    td3_update(agent, None, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
+    steps = torch.clamp(10 - seen["obs"], max=3)  # m: 3, or fewer before the episode's end
+    assert set(steps.tolist()) == {1.0, 2.0, 3.0}
+    torch.testing.assert_close(seen["rewards"], 0.5 * (1 - 0.9 ** steps) / (1 - 0.9))
+    torch.testing.assert_close(seen["next_obs"], seen["obs"] + steps)
+    torch.testing.assert_close(seen["terminated"], (seen["obs"] + steps == 10).float())
+    torch.testing.assert_close(seen["discount"], 0.9 ** steps)
 
 
 def test_episode_subsets_hold_steps_of_one_finished_episode_and_mask_overwritten_ones():
@@ -831,7 +885,7 @@ def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
         assert alphas == [0.5] * 4
     if name in ("no-adaptation", "dac", "td3", "ircr", "rrd"):
         assert all(int(r["promotions"]) == 0 for r in rows)
-    if name in ("rrd", "decomposition"):  # the reward model trains with every TD3 update
+    if name in ("rrd", "decomposition", "n-step"):  # the reward model trains with every TD3 update
         assert all(np.isfinite(float(r["decomposition_loss"])) for r in rows if int(r["global_step"]) >= 1000)
     else:
         assert all(r["decomposition_loss"] == "nan" for r in rows)
