@@ -100,6 +100,10 @@ GRIDS = {
                             {"sail-ln-rrd1-rate": ("sail.py", [*OFF_POLICY, "--critic-layer-norm",
                                                                "--return-decomposition", "1",
                                                                "--decomposition-unit", "rate"])}, [1, 2, 3]),
+    # n-step returns (3 steps) on top of SAIL's defaults: a termination or a good stretch reaches the
+    # critic's target three steps sooner (Ant-v5's agent saw its early ends only a few steps ahead)
+    "learning-n-step": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                            {"sail-n3": ("sail.py", [*OFF_POLICY, "--n-step", "3"])}, [1, 2, 3]),
     # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
