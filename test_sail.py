@@ -14,6 +14,7 @@ import torch.nn.functional as F
 import cpu_kernels
 from buffers import ReplayBuffer, TeacherBuffer, load_demos, mixed_batch, save_demos
 from envs import absorbing_state, add_features, make_env, rollout
+import plumbing
 from plumbing import ConfigError
 from td3 import TD3
 
@@ -542,21 +543,27 @@ def test_make_demos_smoke_run_writes_a_loadable_file(tmp_path):
     assert len(load_demos(str(out), "Hopper-v5", 11, 3)) == 2
 
 
-def test_make_demos_bad_input_is_one_line():
-    *procs, unknown = run_scripts(("make_demos.py", "--env", "NoSuchEnv-v5", "--band", "0", "1"),
-                                  ("make_demos.py", "--env", "Hopper-v5", "--num-episodes", "0"),
-                                  ("make_demos.py", "--env", "Pendulum-v1"),  # no default band
-                                  ("make_demos.py", "--env", "NoSuchEnv-v5"))  # not reported as a missing band
+def make_demos_main(argv):
+    """make_demos.py's command line, in this process (see main_in_process)."""
+    import make_demos
+    return plumbing.run_main("make_demos.py", make_demos.train, make_demos.parse_args(argv))
+
+
+def test_make_demos_bad_input_is_one_line(capsys):
+    *procs, unknown = [main_in_process(make_demos_main, argv, capsys) for argv in (
+        ["--env", "NoSuchEnv-v5", "--band", "0", "1"], ["--env", "Hopper-v5", "--num-episodes", "0"],
+        ["--env", "Pendulum-v1"],  # no default band
+        ["--env", "NoSuchEnv-v5"])]  # not reported as a missing band
     for proc in procs + [unknown]:
         assert_one_line_error(proc)
     assert "unknown environment" in unknown.stderr
 
 
-def test_make_demos_unreadable_checkpoint_is_one_line(tmp_path):
+def test_make_demos_unreadable_checkpoint_is_one_line(tmp_path, capsys):
     broken = tmp_path / "teacher.pt"
     broken.write_text("not a checkpoint")
-    assert_one_line_error(run_script("make_demos.py", "--env", "Hopper-v5", "--checkpoint", str(broken),
-                                     "--output", str(tmp_path / "out.npz")))
+    assert_one_line_error(main_in_process(make_demos_main, ["--env", "Hopper-v5", "--checkpoint", str(broken),
+                                                            "--output", str(tmp_path / "out.npz")], capsys))
     assert not (tmp_path / "out.npz").exists()
 
 
@@ -689,9 +696,10 @@ SMOKE = {
     "td3": ["--algo", "td3"],
     "ircr": ["--algo", "ircr"],
     "rrd": ["--algo", "rrd", "--decomposition-subset", "16"],
-    "decomposition": ["--return-decomposition", "1", "--decomposition-subset", "16", "--decomposition-unit", "rate"],
+    # with n-step returns, which sum the decomposition's and D's rewards over 3 steps
+    "decomposition": ["--return-decomposition", "1", "--decomposition-subset", "16", "--decomposition-unit", "rate",
+                      "--n-step", "3"],
     "critic-layer-norm": ["--critic-layer-norm", "--kernels", "onednn"],
-    "n-step": ["--n-step", "3", "--return-decomposition", "1", "--decomposition-subset", "16"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
 }
 
@@ -885,7 +893,7 @@ def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
         assert alphas == [0.5] * 4
     if name in ("no-adaptation", "dac", "td3", "ircr", "rrd"):
         assert all(int(r["promotions"]) == 0 for r in rows)
-    if name in ("rrd", "decomposition", "n-step"):  # the reward model trains with every TD3 update
+    if name in ("rrd", "decomposition"):  # the reward model trains with every TD3 update
         assert all(np.isfinite(float(r["decomposition_loss"])) for r in rows if int(r["global_step"]) >= 1000)
     else:
         assert all(r["decomposition_loss"] == "nan" for r in rows)
@@ -1164,39 +1172,44 @@ def test_sail_surpasses_a_poor_teacher_and_the_no_adaptation_ablation_does_not(t
     assert int(read_csv(tmp_path / "sail")[-1]["promotions"]) > 0
 
 
-@pytest.mark.parametrize("signame, code", [("SIGINT", 130), ("SIGTERM", 143)])
-def test_ctrl_c_or_sigterm_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path, poor_hopper_demos, signame, code,
-                                                                       capsys):
+def test_ctrl_c_or_sigterm_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path, poor_hopper_demos, capsys):
     """Ctrl-C, kill, timeout and job schedulers all stop a run the same way: a final checkpoint,
     the CSV intact, the shell's exit code, and --resume goes on from there."""
     import signal
     import time
-    run_dir = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos,
-                             "--total-timesteps", "1000000", "--learning-starts", "200", "--eval-freq", "1000",
-                             "--output-dir", str(tmp_path), "--run-name", "run", *TINY],
-                            cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 120
-    while not (run_dir / "progress.csv").exists() and time.time() < deadline:
-        time.sleep(0.2)
-    time.sleep(0.3)  # some steps past the evaluation (the next is 1000 steps away), whose time must be kept too
-    proc.send_signal(getattr(signal, signame))
-    out, err = proc.communicate(timeout=60)
-    assert proc.returncode == code, err[-3000:]
-    assert "Traceback" not in err and "--resume" in out
-    rows = read_csv(run_dir)
-    assert rows and list(rows[0]) == CSV_COLUMNS
-    loop = torch.load(run_dir / "checkpoint.pt", weights_only=True)["loop"]
-    steps = loop["global_step"]
-    assert steps > int(rows[-1]["global_step"])
-    assert loop["train_time"] > float(rows[-1]["time"])  # the seconds after the last row are not lost
+    codes = {"SIGINT": 130, "SIGTERM": 143}
+    procs = {signame: subprocess.Popen(  # one run per signal, side by side (a 2-core machine)
+        [sys.executable, "sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "1000000",
+         "--learning-starts", "200", "--eval-freq", "1000", "--output-dir", str(tmp_path), "--run-name", signame, *TINY],
+        cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for signame in codes}
+    steps = {}
+    for signame, proc in procs.items():
+        run_dir = tmp_path / signame
+        deadline = time.time() + 120
+        while not (run_dir / "progress.csv").exists() and time.time() < deadline:
+            time.sleep(0.2)
+        time.sleep(0.3)  # some steps past the evaluation (the next is 1000 steps away), whose time must be kept too
+        proc.send_signal(getattr(signal, signame))
+    for signame, proc in procs.items():
+        run_dir = tmp_path / signame
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == codes[signame], err[-3000:]
+        assert "Traceback" not in err and "--resume" in out
+        rows = read_csv(run_dir)
+        assert rows and list(rows[0]) == CSV_COLUMNS
+        loop = torch.load(run_dir / "checkpoint.pt", weights_only=True)["loop"]
+        steps[signame] = loop["global_step"]
+        assert steps[signame] > int(rows[-1]["global_step"])
+        assert loop["train_time"] > float(rows[-1]["time"])  # the seconds after the last row are not lost
     # a flag that a resumed run cannot honour is one line, also when given with its default value
     import sail
     for flag in (["--lr", "3e-4"], ["--env", "Walker2d-v5"]):
-        assert_one_line_error(main_in_process(sail.main, ["--resume", str(run_dir), *flag], capsys))
-    resumed = run_script("sail.py", "--resume", str(run_dir), "--total-timesteps", "2000")  # to the next evaluation
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert int(read_csv(run_dir)[-1]["global_step"]) > steps
+        assert_one_line_error(main_in_process(sail.main, ["--resume", str(tmp_path / "SIGINT"), *flag], capsys))
+    resumed = run_scripts(*[("sail.py", "--resume", str(tmp_path / signame), "--total-timesteps", "2000")
+                            for signame in codes])  # each to its next evaluation
+    for signame, proc in zip(codes, resumed):
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        assert int(read_csv(tmp_path / signame)[-1]["global_step"]) > steps[signame]
 
 
 def test_ctrl_c_while_the_libraries_load_is_one_line_and_starts_nothing(tmp_path, poor_hopper_demos):
@@ -1380,26 +1393,28 @@ def test_gae_bootstraps_through_truncation_and_not_through_termination():
     torch.testing.assert_close(adv, torch.tensor([6.5, 1.0, 9.0, 6.0]))
 
 
-@pytest.mark.parametrize("flags", [[], ["--pofd"]])
-def test_gail_and_pofd_smoke_runs_write_the_csv_and_resume_exactly(tmp_path, poor_hopper_demos, flags, capsys):
-    common = ["gail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--steps-per-batch", "500",
-              "--eval-freq", "1000", "--eval-episodes", "1", "--hidden", "16", "16", "--disc-hidden", "16", "16",
-              "--checkpoint-freq", "1000", "--output-dir", str(tmp_path), *flags]
-    straight, first = run_scripts((*common, "--total-timesteps", "3000", "--run-name", "a"),
-                                  (*common, "--total-timesteps", "1000", "--run-name", "b"))
-    assert straight.returncode == 0 and first.returncode == 0, (straight.stderr + first.stderr)[-3000:]
-    resumed = run_script("gail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "3000")
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    rows = read_csv(tmp_path / "a")
-    assert list(rows[0]) == CSV_COLUMNS and [int(r["global_step"]) for r in rows] == [1000, 2000, 3000]
-    assert all(np.isfinite(float(r["eval_return"])) and 0 < float(r["disc_teacher"]) < 1 for r in rows)
-    config = json.load(open(tmp_path / "a" / "config.json"))
-    assert config["algo"] == ("pofd" if flags else "gail")
-    drop = ("steps_per_second", "time")
-    assert ([{k: v for k, v in r.items() if k not in drop} for r in rows]
-            == [{k: v for k, v in r.items() if k not in drop} for r in read_csv(tmp_path / "b")])
+def test_gail_and_pofd_smoke_runs_write_the_csv_and_resume_exactly(tmp_path, poor_hopper_demos, capsys):
+    flags = {"gail": [], "pofd": ["--pofd"]}
+    common = {algo: ["gail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--steps-per-batch", "500",
+                     "--eval-freq", "1000", "--eval-episodes", "1", "--hidden", "16", "16", "--disc-hidden", "16", "16",
+                     "--checkpoint-freq", "1000", "--output-dir", str(tmp_path / algo), *flags[algo]] for algo in flags}
+    procs = run_scripts(*[(*common[algo], "--total-timesteps", total, "--run-name", name)
+                          for algo in flags for total, name in (("3000", "a"), ("1000", "b"))], at_once=2)
+    assert all(proc.returncode == 0 for proc in procs), "".join(proc.stderr for proc in procs)[-3000:]
+    resumed = run_scripts(*[("gail.py", "--resume", str(tmp_path / algo / "b"), "--total-timesteps", "3000")
+                            for algo in flags])
+    assert all(proc.returncode == 0 for proc in resumed), "".join(proc.stderr for proc in resumed)[-3000:]
     import gail
-    assert_one_line_error(main_in_process(gail.main, ["--resume", str(tmp_path / "b"), "--max-kl", "0.05"], capsys))
+    for algo in flags:
+        rows = read_csv(tmp_path / algo / "a")
+        assert list(rows[0]) == CSV_COLUMNS and [int(r["global_step"]) for r in rows] == [1000, 2000, 3000]
+        assert all(np.isfinite(float(r["eval_return"])) and 0 < float(r["disc_teacher"]) < 1 for r in rows)
+        assert json.load(open(tmp_path / algo / "a" / "config.json"))["algo"] == algo
+        drop = ("steps_per_second", "time")
+        assert ([{k: v for k, v in r.items() if k not in drop} for r in rows]
+                == [{k: v for k, v in r.items() if k not in drop} for r in read_csv(tmp_path / algo / "b")])
+        assert_one_line_error(main_in_process(gail.main, ["--resume", str(tmp_path / algo / "b"), "--max-kl", "0.05"],
+                                              capsys))
 
 
 def test_gail_imitates_a_good_teacher_on_a_small_task(tmp_path):
