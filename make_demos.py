@@ -190,5 +190,9 @@ def train(args):
     raise ConfigError(f"the teacher did not reach the band {args.band} within {args.total_timesteps} steps")
 
 
+def main(argv=None):
+    return plumbing.run_main("make_demos.py", train, parse_args(argv))
+
+
 if __name__ == "__main__":
-    sys.exit(plumbing.run_main("make_demos.py", train, parse_args()))
+    sys.exit(main())

@@ -14,7 +14,6 @@ import torch.nn.functional as F
 import cpu_kernels
 from buffers import ReplayBuffer, TeacherBuffer, load_demos, mixed_batch, save_demos
 from envs import absorbing_state, add_features, make_env, rollout
-import plumbing
 from plumbing import ConfigError
 from td3 import TD3
 
@@ -543,14 +542,9 @@ def test_make_demos_smoke_run_writes_a_loadable_file(tmp_path):
     assert len(load_demos(str(out), "Hopper-v5", 11, 3)) == 2
 
 
-def make_demos_main(argv):
-    """make_demos.py's command line, in this process (see main_in_process)."""
-    import make_demos
-    return plumbing.run_main("make_demos.py", make_demos.train, make_demos.parse_args(argv))
-
-
 def test_make_demos_bad_input_is_one_line(capsys):
-    *procs, unknown = [main_in_process(make_demos_main, argv, capsys) for argv in (
+    import make_demos
+    *procs, unknown = [main_in_process(make_demos.main, argv, capsys) for argv in (
         ["--env", "NoSuchEnv-v5", "--band", "0", "1"], ["--env", "Hopper-v5", "--num-episodes", "0"],
         ["--env", "Pendulum-v1"],  # no default band
         ["--env", "NoSuchEnv-v5"])]  # not reported as a missing band
@@ -560,9 +554,10 @@ def test_make_demos_bad_input_is_one_line(capsys):
 
 
 def test_make_demos_unreadable_checkpoint_is_one_line(tmp_path, capsys):
+    import make_demos
     broken = tmp_path / "teacher.pt"
     broken.write_text("not a checkpoint")
-    assert_one_line_error(main_in_process(make_demos_main, ["--env", "Hopper-v5", "--checkpoint", str(broken),
+    assert_one_line_error(main_in_process(make_demos.main, ["--env", "Hopper-v5", "--checkpoint", str(broken),
                                                             "--output", str(tmp_path / "out.npz")], capsys))
     assert not (tmp_path / "out.npz").exists()
 
