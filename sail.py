@@ -82,7 +82,7 @@ CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "
 RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
 PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
-             "decomposition_unit": "range", "n_step": 1}
+             "decomposition_unit": "range", "n_step": 1, "utd": 1}
 
 
 def parse_args(argv=None):
@@ -138,6 +138,8 @@ def parse_args(argv=None):
                    "critics (as RLPD), against Q values that run away from the data")
     g.add_argument("--update-every", type=positive_int, default=1,
                    help="env steps between groups of as many TD3 updates (authors: 1000)")
+    g.add_argument("--utd", type=positive_int, default=1, help="update-to-data ratio: TD3 updates (and "
+                   "reward-model minibatches) per env step, as RLPD raises it; 1 is TD3's")
     g.add_argument("--reward", choices=["sail", "airl", "env", "none"], default="sail",
                    help="critic reward: sail = -log(1-D), airl = log D - log(1-D), env = sparse env reward, "
                    "none = 0 (the return bonus or decomposition alone)")
@@ -555,7 +557,7 @@ def train(args):
                 if s.global_step % args.update_every == 0:
                     unit = decomposition_unit(args.decomposition_unit, s.return_range, s.rate_range,
                                               env.max_episode_steps)
-                    for _ in range(args.update_every):
+                    for _ in range(args.update_every * args.utd):
                         if reward_model is not None:
                             stats.update(train_reward_model(reward_model, reward_optimizer, self_buffer, args))
                         stats.update(td3_update(agent, disc, teacher_buffer, self_buffer, s.alpha, args,

@@ -694,7 +694,8 @@ SMOKE = {
     # with n-step returns, which sum the decomposition's and D's rewards over 3 steps
     "decomposition": ["--return-decomposition", "1", "--decomposition-subset", "16", "--decomposition-unit", "rate",
                       "--n-step", "3"],
-    "critic-layer-norm": ["--critic-layer-norm", "--kernels", "onednn"],
+    # as RLPD: layer-normed critics and 2 updates per env step
+    "critic-layer-norm": ["--critic-layer-norm", "--kernels", "onednn", "--utd", "2"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
 }
 
@@ -880,7 +881,7 @@ def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
         return
     assert "sail.py" in config["command"] and config["total_timesteps"] == 1600
     assert [int(r["global_step"]) for r in rows] == [400, 800, 1200, 1600]
-    assert int(rows[-1]["updates"]) == 601
+    assert int(rows[-1]["updates"]) == (2 * 601 if name == "critic-layer-norm" else 601)  # --utd 2 there
     alphas = [float(r["alpha"]) for r in rows]
     if name in ("no-lfd", "dac", "td3", "ircr", "rrd"):
         assert alphas == [0.0] * 4

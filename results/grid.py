@@ -104,6 +104,12 @@ GRIDS = {
     # critic's target three steps sooner (Ant-v5's agent saw its early ends only a few steps ahead)
     "learning-n-step": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                             {"sail-n3": ("sail.py", [*OFF_POLICY, "--n-step", "3"])}, [1, 2, 3]),
+    # RLPD's recipe on top of the layer norm and decomposition pair: two TD3 updates per env step
+    "learning-utd2": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                          {"sail-ln-rrd1-rate-utd2": ("sail.py", [*OFF_POLICY, "--critic-layer-norm",
+                                                                  "--return-decomposition", "1",
+                                                                  "--decomposition-unit", "rate", "--utd", "2"])},
+                          [1, 2, 3]),
     # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
