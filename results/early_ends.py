@@ -8,7 +8,8 @@ return, the length and the range of the first observation entry, which on Ant-v5
 Walker2d-v5 is the torso's height (their observations leave out the x position), and on Ant-v5
 the steps its torso spent upside down (entries 1-4 are the torso's orientation quaternion w, x,
 y, z: the body's up axis points down where 1 - 2(x^2 + y^2) < 0); then the height range over
-the run's teacher episodes. Gymnasium's locomotion envs end an episode early when the body leaves
+the run's teacher episodes, and the squared action norm per step of actor and teacher, which the
+env's dense reward charges as control cost (Ant-v5: 0.5 a step per unit). Gymnasium's locomotion envs end an episode early when the body leaves
 its healthy range (Ant-v5: a torso height outside [0.2, 1.0]; lying upside down is inside it).
 An episode ended early if it is shorter than the time limit (with DAC's absorbing states, one step
 longer than the fall; the absorbing state is left out of the ranges). Last, the run's own training
@@ -49,7 +50,7 @@ agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.actio
 checkpoint = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), {"agent": agent})
 policy = (lambda o: agent.act(o, target=True)) if args.target else agent.act
 
-returns, early = [], 0
+returns, early, action_cost = [], 0, []
 for i in range(args.episodes):
     episode = rollout(env, policy)
     states = np.concatenate([episode["observations"], episode["next_observations"][-1:]])
@@ -58,6 +59,7 @@ for i in range(args.episodes):
     height = states[:, 0]
     ended_early = len(episode["actions"]) < env.max_episode_steps
     returns.append(episode["episodic_return"])
+    action_cost.append((episode["actions"] ** 2).sum(-1).mean())
     early += ended_early
     ending = f"ended early, first entry {height[-1]:.2f} at the end" if ended_early else "ran to the limit"
     if config["env"].startswith("Ant"):
@@ -72,6 +74,12 @@ with np.load(config.get("demos") or default_demo_path(config["env"]), allow_pick
     first = demos["observations"][:ends[-1], 0]
     print(f"teacher ({config['num_demos']} episodes): first entry {first.min():.2f}-{first.max():.2f}, "
           f"lengths {', '.join(str(n) for n in demos['episode_lengths'][:config['num_demos']])}")
+    teacher_cost = (demos["actions"][:ends[-1]] ** 2).sum(-1).mean()
+# the env's control cost per step is its weight times the squared action norm (gymnasium's v5 locomotion envs)
+weight = getattr(env.unwrapped, "_ctrl_cost_weight", float("nan"))
+print(f"squared action norm per step: actor {np.mean(action_cost):.3f}, teacher {teacher_cost:.3f}; control cost "
+      f"weight {weight}: {weight * np.mean(action_cost) * env.max_episode_steps:.0f} against "
+      f"{weight * teacher_cost * env.max_episode_steps:.0f} over {env.max_episode_steps} steps")
 
 # every transition of R_B carries its episode's start (its index in R_B), length and return (NaN: unfinished)
 self_buffer = checkpoint["self_buffer"]
