@@ -76,13 +76,14 @@ PRESETS = {
 }
 CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "eval_return_actor", "eval_return_target",
                "train_episodic_return", "teacher_threshold", "teacher_episodes", "promotions", "alpha", "disc_loss",
-               "disc_teacher", "disc_self", "reward_mean", "decomposition_loss", "critic_loss", "actor_loss", "q",
+               "disc_teacher", "disc_self", "reward_mean", "decomposition_loss", "critic_loss", "actor_loss", "q", "bc_filter",
                "updates", "steps_per_second", "time"]
 # what --resume RUN_DIR may change; every other flag is the saved run's
 RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
 PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
-             "decomposition_unit": "range", "n_step": 1, "utd": 1}
+             "decomposition_unit": "range", "n_step": 1, "utd": 1,
+             "bc_weight": 0.0}
 
 
 def parse_args(argv=None):
@@ -136,6 +137,9 @@ def parse_args(argv=None):
                    "N consecutive steps of the transition's episode before it bootstraps (n-step returns); 1 is TD3's")
     g.add_argument("--critic-layer-norm", action="store_true", help="LayerNorm before each hidden ReLU of the "
                    "critics (as RLPD), against Q values that run away from the data")
+    g.add_argument("--bc-weight", type=non_negative_float, default=0.0, help="adds to the actor's loss this "
+                   "weight times the squared distance to R_E's actions where the critic rates them above the "
+                   "actor's (Q-filtered behaviour cloning, Nair et al. 2018); 0: off")
     g.add_argument("--update-every", type=positive_int, default=1,
                    help="env steps between groups of as many TD3 updates (authors: 1000)")
     g.add_argument("--utd", type=positive_int, default=1, help="update-to-data ratio: TD3 updates (and "
@@ -208,6 +212,8 @@ def check_args(p, args):
     if args.reward == "none" and args.return_bonus <= 0 and args.return_decomposition <= 0:
         p.error("--reward none leaves the critic only the return bonus or decomposition: give --return-bonus > 0 "
                 "or --return-decomposition > 0")
+    if args.bc_weight > 0 and args.reward not in ("sail", "airl"):
+        p.error(f"--bc-weight clones R_E's actions: --reward {args.reward} learns without demos")
     if args.return_decomposition > 0 and args.decomposition_subset > args.batch_size:
         p.error(f"--decomposition-subset {args.decomposition_subset} is more than --batch-size {args.batch_size}")
     if args.buffer_size < 1001:
@@ -397,8 +403,14 @@ def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_ran
     # in DAC's code). With the actor's action instead, the critic is asked for Q at actions it never
     # saw in that state, the actor pushes them up, and the self-loop multiplies that by 1/(1 - gamma).
     next_action_mask = 1.0 - next_obs[:, -1:] if args.absorbing else None
+    bc = None
+    if args.bc_weight > 0:
+        # Q-filtered behaviour cloning of R_E (Nair et al. 2018): the teacher's actions, then the agent's best
+        # episodes' once promoted, wherever the critic rates them above the actor's own
+        teacher_obs, teacher_actions = (x.to(agent.device) for x in teacher_buffer.sample(args.batch_size)[:2])
+        bc = (teacher_obs, teacher_actions, args.bc_weight)
     losses = agent.update(obs[:, 0], actions[:, 0], n_step_return, next_obs, terminated, next_action_mask,
-                          discount=args.gamma ** (last + 1.0))
+                          discount=args.gamma ** (last + 1.0), bc=bc)
     return losses | {"reward_mean": rewards[:, 0].mean()}
 
 

@@ -116,14 +116,15 @@ class TD3:
         noise = rng.normal(0.0, exploration_noise * (high - low) / 2)
         return np.clip(self.act(obs) + noise, low, high).astype(np.float32)
 
-    def update(self, obs, actions, rewards, next_obs, terminated, next_action_mask=None, discount=None):
+    def update(self, obs, actions, rewards, next_obs, terminated, next_action_mask=None, discount=None, bc=None):
         """One TD3 step on a batch; `rewards` come from the caller. Returns detached losses.
 
         `terminated` is 1 only for true terminal states: a time-limit truncation is not one,
         so the target bootstraps through it. `next_action_mask` (0 or 1 per row, optional)
         multiplies the target's next action: 0 where only the zero action exists in s'.
         `discount` (per row, optional; default gamma) is gamma^m where `rewards` sum m steps
-        and `next_obs` is the state m steps on (n-step returns).
+        and `next_obs` is the state m steps on (n-step returns). `bc` (optional: states, actions,
+        weight) adds behaviour cloning of those actions to the actor's loss (see below).
         """
         discount = self.gamma if discount is None else discount
         with torch.no_grad():
@@ -144,7 +145,17 @@ class TD3:
 
         if self.num_updates % self.policy_delay == 0:
             self.critic.requires_grad_(False)  # the actor's gradient passes through a fixed Q1
-            actor_loss = -self.critic.q1(obs, self.actor(obs)).mean()
+            q = self.critic.q1(obs, self.actor(obs))
+            actor_loss = -q.mean()
+            if bc is not None:
+                bc_obs, bc_actions, weight = bc
+                bc_policy = self.actor(bc_obs)
+                with torch.no_grad():  # the Q filter (Nair et al. 2018): clone only where Q1 rates the action higher
+                    better = (self.critic.q1(bc_obs, bc_actions) > self.critic.q1(bc_obs, bc_policy)).float()
+                distance = (((bc_policy - bc_actions) / self.actor.action_scale) ** 2).sum(-1)
+                # Q over its mean magnitude, as TD3+BC (Fujimoto & Gu 2021): the weight means the same at any reward scale
+                actor_loss = actor_loss / q.abs().mean().detach() + weight * (better * distance).mean()
+                losses["bc_filter"] = better.mean()
             self.actor_optimizer.zero_grad(set_to_none=True)
             actor_loss.backward()
             self.critic.requires_grad_(True)

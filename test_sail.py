@@ -684,7 +684,7 @@ SMOKE = {
     "no-lfd": ["--no-lfd"],
     "no-adaptation": ["--no-adaptation"],
     "on-policy-disc": ["--on-policy-disc"],
-    "anneal": ["--alpha-anneal-steps", "500"],
+    "anneal": ["--alpha-anneal-steps", "500", "--bc-weight", "0.4"],  # with Q-filtered cloning of R_E
     "no-return-bonus": ["--return-bonus", "0"],
     "return-rank": ["--return-scale", "rank"],
     "dac": ["--algo", "dac"],
@@ -712,13 +712,13 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
     for bonus in (0.0, 2.0):
         torch.manual_seed(0)  # the same batch both times: the bonus draws no extra samples here
         args = argparse.Namespace(batch_size=64, reward="sail", return_bonus=bonus, return_scale="minmax",
-                                  absorbing=False, return_decomposition=0.0, n_step=1, gamma=0.99)
+                                  absorbing=False, return_decomposition=0.0, n_step=1, gamma=0.99, bc_weight=0.0)
         means[bonus] = float(td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args,
                                         return_range=(2.0, 12.0))["reward_mean"])
     assert means[2.0] - means[0.0] == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-5)
     # IRCR (--reward none): the bonus is the whole reward, D plays no part
     args = argparse.Namespace(batch_size=64, reward="none", return_bonus=2.0, return_scale="minmax", absorbing=False,
-                              return_decomposition=0.0, n_step=1, gamma=0.99)
+                              return_decomposition=0.0, n_step=1, gamma=0.99, bc_weight=0.0)
     ircr = td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
     assert float(ircr["reward_mean"]) == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-6)
     # return decomposition: a reward model that says 0.5 everywhere adds 3 * 0.5 / ((12 - 2) / 40) per step
@@ -734,6 +734,36 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
     assert decomposition_unit("rate", (2.0, 12.0), (0.5, 3.0), episode_steps=40) == pytest.approx(2.5)
 
 
+class _QuadraticQ(torch.nn.Module):
+    """Q(s, a) = -|a - best|^2: a critic whose best action is known."""
+    def __init__(self, best):
+        super().__init__()
+        self.best = torch.nn.Parameter(torch.as_tensor(best, dtype=torch.float32))
+
+    def forward(self, obs, action):
+        return -((action - self.best) ** 2).sum(-1)
+
+
+def test_q_filtered_behaviour_cloning_clones_only_actions_the_critic_rates_higher():
+    torch.manual_seed(0)
+    obs = torch.randn(64, 3)
+    for teacher_action, filtered in ((0.5, 1.0), (-0.9, 0.0)):
+        agent = TD3(obs_dim=3, act_dim=2, action_low=-np.ones(2), action_high=np.ones(2), hidden=(16, 16),
+                    policy_delay=1, lr=1e-2)
+        agent.critic.q1, agent.critic.q2 = _QuadraticQ([0.5, 0.5]), _QuadraticQ([0.5, 0.5])
+        torch.nn.init.zeros_(agent.actor.net[-1].weight)  # the actor starts at action 0 in every state
+        torch.nn.init.zeros_(agent.actor.net[-1].bias)
+        actions = torch.full((64, 2), teacher_action)
+        bc = (obs, actions, 100.0)  # cloning outweighs Q's pull towards 0.5
+        losses = agent.update(obs, torch.zeros(64, 2), torch.zeros(64), obs, torch.zeros(64), bc=bc)
+        # the Q filter: 0.5 beats the actor's 0 under Q1, -0.9 does not
+        assert float(losses["bc_filter"]) == filtered
+        for _ in range(50):
+            agent.update(obs, torch.zeros(64, 2), torch.zeros(64), obs, torch.zeros(64), bc=bc)
+        # cloned towards 0.5 where the filter lets it; else Q alone pulls it to 0.5 too, never towards -0.9
+        assert (agent.actor(obs) > 0.3).all()
+
+
 def test_n_step_target_sums_the_discounted_rewards_inside_the_episode_then_bootstraps():
     import argparse
     agent = TD3(obs_dim=1, act_dim=1, action_low=-np.ones(1), action_high=np.ones(1), hidden=(8, 8))
@@ -742,12 +772,12 @@ def test_n_step_target_sums_the_discounted_rewards_inside_the_episode_then_boots
         self_buffer.add([i], [0], 0.0, [i + 1], float(i == 9))
     self_buffer.end_episode(0, 7.0)
     seen = {}
-    agent.update = lambda obs, actions, rewards, next_obs, terminated, next_action_mask, discount: \
+    agent.update = lambda obs, actions, rewards, next_obs, terminated, next_action_mask, discount, bc: \
         seen.update(obs=obs[:, 0], rewards=rewards, next_obs=next_obs[:, 0], terminated=terminated,
                     discount=discount) or {}
     # --reward none with the return bonus: every step's reward is (7 - 2) / (12 - 2) = 0.5
     args = argparse.Namespace(batch_size=500, reward="none", return_bonus=1.0, return_scale="minmax", absorbing=False,
-                              return_decomposition=0.0, n_step=3, gamma=0.9)
+                              return_decomposition=0.0, n_step=3, gamma=0.9, bc_weight=0.0)
     td3_update(agent, None, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
     steps = torch.clamp(10 - seen["obs"], max=3)  # m: 3, or fewer before the episode's end
     assert set(steps.tolist()) == {1.0, 2.0, 3.0}
