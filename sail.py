@@ -138,7 +138,7 @@ def parse_args(argv=None):
     g.add_argument("--critic-layer-norm", action="store_true", help="LayerNorm before each hidden ReLU of the "
                    "critics (as RLPD), against Q values that run away from the data")
     g.add_argument("--bc-weight", type=non_negative_float, default=0.0, help="adds to the actor's loss this "
-                   "weight times the squared distance to R_E's actions where the critic rates them above the "
+                   "weight times the mean squared distance to R_E's actions where the critic rates them above the "
                    "actor's (Q-filtered behaviour cloning, Nair et al. 2018); 0: off")
     g.add_argument("--update-every", type=positive_int, default=1,
                    help="env steps between groups of as many TD3 updates (authors: 1000)")

@@ -152,8 +152,9 @@ class TD3:
                 bc_policy = self.actor(bc_obs)
                 with torch.no_grad():  # the Q filter (Nair et al. 2018): clone only where Q1 rates the action higher
                     better = (self.critic.q1(bc_obs, bc_actions) > self.critic.q1(bc_obs, bc_policy)).float()
-                distance = (((bc_policy - bc_actions) / self.actor.action_scale) ** 2).sum(-1)
-                # Q over its mean magnitude, as TD3+BC (Fujimoto & Gu 2021): the weight means the same at any reward scale
+                distance = (((bc_policy - bc_actions) / self.actor.action_scale) ** 2).mean(-1)
+                # Q over its mean magnitude, as TD3+BC (Fujimoto & Gu 2021; its alpha 2.5 is weight 0.4 here): the
+                # weight means the same at any reward scale
                 actor_loss = actor_loss / q.abs().mean().detach() + weight * (better * distance).mean()
                 losses["bc_filter"] = better.mean()
             self.actor_optimizer.zero_grad(set_to_none=True)
