@@ -76,7 +76,7 @@ PRESETS = {
 }
 CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "eval_return_actor", "eval_return_target",
                "train_episodic_return", "teacher_threshold", "teacher_episodes", "promotions", "alpha", "disc_loss",
-               "disc_teacher", "disc_self", "reward_mean", "decomposition_loss", "critic_loss", "actor_loss", "q", "bc_filter",
+               "disc_teacher", "disc_self", "reward_mean", "decomposition_loss", "critic_loss", "actor_loss", "q",
                "updates", "steps_per_second", "time"]
 # what --resume RUN_DIR may change; every other flag is the saved run's
 RESUMABLE = ("total_timesteps", "threads", "device")
@@ -137,9 +137,9 @@ def parse_args(argv=None):
                    "N consecutive steps of the transition's episode before it bootstraps (n-step returns); 1 is TD3's")
     g.add_argument("--critic-layer-norm", action="store_true", help="LayerNorm before each hidden ReLU of the "
                    "critics (as RLPD), against Q values that run away from the data")
-    g.add_argument("--bc-weight", type=non_negative_float, default=0.0, help="adds to the actor's loss this "
-                   "weight times the mean squared distance to R_E's actions where the critic rates them above the "
-                   "actor's (Q-filtered behaviour cloning, Nair et al. 2018); 0: off")
+    g.add_argument("--bc-weight", type=non_negative_float, default=0.0, help="behaviour cloning of R_E in the "
+                   "actor's loss, as TD3+BC: Q over its mean magnitude plus this weight times the mean squared "
+                   "distance to R_E's actions (TD3+BC's alpha 2.5 is 0.4); 0: off")
     g.add_argument("--update-every", type=positive_int, default=1,
                    help="env steps between groups of as many TD3 updates (authors: 1000)")
     g.add_argument("--utd", type=positive_int, default=1, help="update-to-data ratio: TD3 updates (and "
@@ -405,8 +405,8 @@ def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_ran
     next_action_mask = 1.0 - next_obs[:, -1:] if args.absorbing else None
     bc = None
     if args.bc_weight > 0:
-        # Q-filtered behaviour cloning of R_E (Nair et al. 2018): the teacher's actions, then the agent's best
-        # episodes' once promoted, wherever the critic rates them above the actor's own
+        # behaviour cloning of R_E: the teacher's actions, then those of the agent's best episodes once promoted,
+        # so that the actor stays near the best behaviour seen while Q pulls it beyond
         teacher_obs, teacher_actions = (x.to(agent.device) for x in teacher_buffer.sample(args.batch_size)[:2])
         bc = (teacher_obs, teacher_actions, args.bc_weight)
     losses = agent.update(obs[:, 0], actions[:, 0], n_step_return, next_obs, terminated, next_action_mask,

@@ -124,7 +124,7 @@ class TD3:
         multiplies the target's next action: 0 where only the zero action exists in s'.
         `discount` (per row, optional; default gamma) is gamma^m where `rewards` sum m steps
         and `next_obs` is the state m steps on (n-step returns). `bc` (optional: states, actions,
-        weight) adds behaviour cloning of those actions to the actor's loss (see below).
+        weight) adds behaviour cloning of those actions to the actor's loss.
         """
         discount = self.gamma if discount is None else discount
         with torch.no_grad():
@@ -147,16 +147,11 @@ class TD3:
             self.critic.requires_grad_(False)  # the actor's gradient passes through a fixed Q1
             q = self.critic.q1(obs, self.actor(obs))
             actor_loss = -q.mean()
-            if bc is not None:
+            if bc is not None:  # TD3+BC (Fujimoto & Gu 2021): Q over its mean magnitude plus weight x the squared
+                # distance to the given actions (its alpha 2.5 is weight 0.4), whatever the reward's scale
                 bc_obs, bc_actions, weight = bc
-                bc_policy = self.actor(bc_obs)
-                with torch.no_grad():  # the Q filter (Nair et al. 2018): clone only where Q1 rates the action higher
-                    better = (self.critic.q1(bc_obs, bc_actions) > self.critic.q1(bc_obs, bc_policy)).float()
-                distance = (((bc_policy - bc_actions) / self.actor.action_scale) ** 2).mean(-1)
-                # Q over its mean magnitude, as TD3+BC (Fujimoto & Gu 2021; its alpha 2.5 is weight 0.4 here): the
-                # weight means the same at any reward scale
-                actor_loss = actor_loss / q.abs().mean().detach() + weight * (better * distance).mean()
-                losses["bc_filter"] = better.mean()
+                distance = (((self.actor(bc_obs) - bc_actions) / self.actor.action_scale) ** 2).mean()
+                actor_loss = actor_loss / q.abs().mean().detach() + weight * distance
             self.actor_optimizer.zero_grad(set_to_none=True)
             actor_loss.backward()
             self.critic.requires_grad_(True)

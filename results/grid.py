@@ -110,7 +110,7 @@ GRIDS = {
                                                                   "--return-decomposition", "1",
                                                                   "--decomposition-unit", "rate", "--utd", "2"])},
                           [1, 2, 3]),
-    # Q-filtered behaviour cloning of R_E (Nair et al. 2018) on top of SAIL's defaults, at TD3+BC's weight
+    # behaviour cloning of R_E in TD3+BC's form on top of SAIL's defaults, at TD3+BC's weight
     "learning-bc": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                         {"sail-bc0.4": ("sail.py", [*OFF_POLICY, "--bc-weight", "0.4"])}, [1, 2, 3]),
     # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
