@@ -1058,8 +1058,10 @@ def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     assert len(episodes) == 3 and all("ended early" in line for line in episodes)  # a barely trained hopper falls
     summary = lines.index(next(line for line in lines if line.startswith("Hopper-v5, actor:")))
     assert "3 ended early" in lines[summary] and lines[summary + 1].startswith("teacher (1 episodes): first entry")
-    training = lines[summary + 3:]  # R_B's episodes: the straight run's 1500 steps, nearly all falls
-    assert lines[summary + 2].startswith("training episodes (R_B") and len(training) == 1
+    assert lines[summary + 2].startswith("squared action norm per step: actor ")  # and the control cost it makes
+    assert "control cost weight 0.001:" in lines[summary + 2]  # Hopper-v5's
+    training = lines[summary + 4:]  # R_B's episodes: the straight run's 1500 steps, nearly all falls
+    assert lines[summary + 3].startswith("training episodes (R_B") and len(training) == 1
     assert training[0].startswith("  0-50000: ") and int(training[0].split(" ended early")[0].split(", ")[-1]) >= 10
     assert missing.returncode == 2 and "has no config.json" in missing.stderr
 
