@@ -23,22 +23,55 @@ SHIPPED = {"Hopper-v5": (1000, 1500), "Walker2d-v5": (1000, 1700), "HalfCheetah-
 
 
 def run_script(*args, timeout=240):
-    return subprocess.run([sys.executable, *args], cwd=HERE, capture_output=True, text=True, timeout=timeout)
+    """`python SCRIPT ARGS` in this folder: a CompletedProcess with the exit code, stdout and stderr."""
+    return run_scripts(args, timeout=timeout)[0]
 
 
 def run_scripts(*commands, timeout=240, at_once=None):
-    """run_script for each command, `at_once` of them at a time (default: all; most of each is
-    importing torch and MuJoCo, and a 2-core CI machine runs two single-threaded runs in the time of one)."""
+    """run_script for each command, `at_once` of them at a time (default: all; a 2-core CI
+    machine runs two single-threaded runs in the time of one).
+
+    Each runs as a child of a fork server that has imported torch, torch._dynamo (which torch's
+    optimizers import on first use), MuJoCo and the repo's modules once: a new interpreter would
+    spend 2-3 CPU seconds on those imports, the bulk of a short run, and this suite runs scripts
+    some 70 times. The child runs the script as `__main__` with its own argv, its stdout and
+    stderr in files, and exits with the code a real `python SCRIPT` would. The tests of signals
+    and of Ctrl-C while the libraries load start real interpreters (subprocess.Popen)."""
+    import multiprocessing
+    import tempfile
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(["torch._dynamo", "mujoco", "sail", "gail", "bc", "test_sail"])
     at_once = at_once or len(commands)
     results = []
-    for i in range(0, len(commands), at_once):
-        chunk = commands[i:i + at_once]
-        procs = [subprocess.Popen([sys.executable, *args], cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                  text=True) for args in chunk]
-        for args, proc in zip(chunk, procs):
-            out, err = proc.communicate(timeout=timeout)
-            results.append(subprocess.CompletedProcess([sys.executable, *args], proc.returncode, out, err))
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(0, len(commands), at_once):
+            chunk = commands[i:i + at_once]
+            outputs = [(os.path.join(tmp, f"{i + j}.out"), os.path.join(tmp, f"{i + j}.err")) for j in range(len(chunk))]
+            procs = [ctx.Process(target=_script_as_main, args=(args, out, err)) for args, (out, err) in zip(chunk, outputs)]
+            for proc in procs:
+                proc.start()
+            for args, proc, (out, err) in zip(chunk, procs, outputs):
+                proc.join(timeout)
+                if proc.exitcode is None:
+                    proc.kill()
+                    raise subprocess.TimeoutExpired([sys.executable, *args], timeout)
+                out, err = (open(path).read() if os.path.exists(path) else "" for path in (out, err))
+                results.append(subprocess.CompletedProcess([sys.executable, *args], proc.exitcode, out, err))
     return results
+
+
+def _script_as_main(args, out_path, err_path):
+    """In a child of the fork server: what `python ARGS[0] ARGS[1:]` does, run from this folder.
+    A SystemExit or an exception ends the child as it would end the interpreter: its exit code,
+    or a traceback and exit code 1."""
+    import runpy
+    os.chdir(HERE)
+    for fd, path in ((1, out_path), (2, err_path)):
+        os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), fd)
+    script, *argv = args
+    sys.argv = [script, *argv]
+    sys.path.insert(0, os.path.dirname(os.path.abspath(script)))  # as python puts the script's folder first
+    runpy.run_path(script, run_name="__main__")
 
 
 class PointMass(gym.Env):
