@@ -285,10 +285,11 @@ def resume_config(run_dir, args, given, changeable, predating=None):
         raise ConfigError(f"--resume keeps the run's saved flags; {flags} cannot change (only {allowed} can)")
     saved = {k: v for k, v in vars(read_config(run_dir)).items() if k in vars(args)}  # the command line, the given set: not flags
     saved = (predating or {}) | saved
-    for name in changeable:
-        if name in given:
-            saved[name] = getattr(args, name)
-    return argparse.Namespace(**(vars(args) | saved | {"resume": run_dir}))
+    anew = {name: getattr(args, name) for name in changeable if name in given}
+    if anew:  # config.json says what the run is now, e.g. the 1M steps it was extended to
+        config = json.loads(open(path).read()) | anew
+        atomic_write(path, lambda f: f.write(json.dumps(config, indent=2).encode()))
+    return argparse.Namespace(**(vars(args) | saved | anew | {"resume": run_dir}))
 
 
 class StopRequest:

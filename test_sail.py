@@ -1296,6 +1296,8 @@ def test_resume_takes_flags_given_with_their_default_values(tmp_path):
     assert args.given == {"resume", "total_timesteps", "threads"}
     resumed = plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE)
     assert (resumed.total_timesteps, resumed.threads, resumed.eval_freq) == (1_000_000, 2, 200)
+    config = json.loads((run / "config.json").read_text())  # and the run folder says so
+    assert (config["total_timesteps"], config["threads"], config["eval_freq"]) == (1_000_000, 2, 200)
 
 
 def test_resuming_a_run_saved_before_the_return_bonus_keeps_it_off(tmp_path):
