@@ -1200,11 +1200,13 @@ def test_sail_surpasses_a_poor_teacher_and_the_no_adaptation_ablation_does_not(t
     policy); both runs share every flag and seed and differ only in --no-adaptation. Imitation
     alone rewards behaving like the teacher, so the ablation ends near the teacher's return; only
     the adaptive teacher buffer, fed by the sparse episodic return, lets SAIL end far above it.
-    The runs are deterministic for a seed on a given CPU. Seeds 1-3 (2026-11-21, oneDNN layers):
-    SAIL ends at 96 in each; the ablation at 29, 22 and -96. On its way it has excursions far
-    above the teacher (seed 3: 96 for four evaluations) while its discriminator, smooth under
-    the gradient penalty, still rewards actions beyond the teacher's: that is why the test
-    reads the end of the run and allows the ablation up to twice the teacher's return.
+    The runs are deterministic for a seed on a given CPU. Seeds 1-3 (2026-11-21, Intel Xeon,
+    oneDNN layers): SAIL ends at 96 in each; the ablation at 29, 22 and -96. Seeds 1-2 on an AMD
+    EPYC (2026-11-24): SAIL at 96 from step 2000 on; the ablation at 96 from 2000 to 4000 or
+    7000 steps, then ending at -7 and -96. On its way the ablation has excursions far above the
+    teacher while its discriminator, smooth under the gradient penalty, still rewards actions
+    beyond the teacher's: that is why the test reads the end of the run and allows the
+    ablation up to twice the teacher's return.
     """
     env_id = "test_sail:PointMass-v0"
     env = make_env(env_id, seed=0, sparse=False, time_feature=False)
@@ -1212,16 +1214,15 @@ def test_sail_surpasses_a_poor_teacher_and_the_no_adaptation_ablation_does_not(t
     demos = str(tmp_path / "PointMass.npz")
     save_demos(demos, episodes, env_id)
     teacher_return = episodes[0]["episodic_return"]
-    common = [sys.executable, "sail.py", "--env", env_id, "--demos", demos, "--total-timesteps", "10000",
+    common = ["sail.py", "--env", env_id, "--demos", demos, "--total-timesteps", "10000",
               "--learning-starts", "1000", "--eval-freq", "1000", "--eval-episodes", "3", "--disc-freq", "100",
               "--hidden", "64", "64", "--disc-hidden", "64", "64", "--threads", "1", "--seed", "1",
               "--output-dir", str(tmp_path)]
-    procs = {name: subprocess.Popen([*common, "--run-name", name, *flags], cwd=HERE, stdout=subprocess.DEVNULL,
-                                    stderr=subprocess.PIPE, text=True)  # both at once, one core each
-             for name, flags in (("sail", []), ("no-adaptation", ["--no-adaptation"]))}
+    runs = {"sail": [], "no-adaptation": ["--no-adaptation"]}
+    procs = dict(zip(runs, run_scripts(*[(*common, "--run-name", name, *flags) for name, flags in runs.items()],
+                                       timeout=280)))  # both at once, one core each
     for name, proc in procs.items():
-        _, err = proc.communicate(timeout=280)
-        assert proc.returncode == 0, err[-3000:]
+        assert proc.returncode == 0, proc.stderr[-3000:]
     final = {name: np.mean([float(r["eval_return"]) for r in read_csv(tmp_path / name)[-2:]]) for name in procs}
     assert {float(r["eval_length"]) for r in read_csv(tmp_path / "sail")} == {100.0}  # only truncated
     assert final["sail"] > 3 * teacher_return
