@@ -287,7 +287,7 @@ def resume_config(run_dir, args, given, changeable, predating=None):
     saved = (predating or {}) | saved
     anew = {name: getattr(args, name) for name in changeable if name in given}
     if anew:  # config.json says what the run is now, e.g. the 1M steps it was extended to
-        config = json.loads(open(path).read()) | anew
+        config = vars(read_config(run_dir)) | anew
         atomic_write(path, lambda f: f.write(json.dumps(config, indent=2).encode()))
     return argparse.Namespace(**(vars(args) | saved | anew | {"resume": run_dir}))
 
