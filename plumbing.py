@@ -283,12 +283,12 @@ def resume_config(run_dir, args, given, changeable, predating=None):
         flags = ", ".join("--" + name.replace("_", "-") for name in ignored)
         allowed = ", ".join("--" + name.replace("_", "-") for name in changeable)
         raise ConfigError(f"--resume keeps the run's saved flags; {flags} cannot change (only {allowed} can)")
-    saved = {k: v for k, v in vars(read_config(run_dir)).items() if k in vars(args)}  # the command line, the given set: not flags
+    config = vars(read_config(run_dir))
+    saved = {k: v for k, v in config.items() if k in vars(args)}  # the command line, the given set: not flags
     saved = (predating or {}) | saved
     anew = {name: getattr(args, name) for name in changeable if name in given}
     if anew:  # config.json says what the run is now, e.g. the 1M steps it was extended to
-        config = vars(read_config(run_dir)) | anew
-        atomic_write(path, lambda f: f.write(json.dumps(config, indent=2).encode()))
+        atomic_write(path, lambda f: f.write(json.dumps(config | anew, indent=2).encode()))
     return argparse.Namespace(**(vars(args) | saved | anew | {"resume": run_dir}))
 
 
