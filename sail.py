@@ -57,7 +57,7 @@ from buffers import ReplayBuffer, TeacherBuffer, default_demo_path, load_teacher
 from envs import EnvState, evaluate_policy, get_env_state, make_env, set_env_state
 from evaluate import evaluate_run, save_model
 from plumbing import ConfigError, non_negative_float, positive_int
-from td3 import TD3, make_adam, mlp
+from td3 import TD3, colored_noise, make_adam, mlp
 
 # Presets of --algo: each sets defaults that explicit flags still override.
 PRESETS = {
@@ -83,7 +83,7 @@ RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
 PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
              "decomposition_unit": "range", "n_step": 1, "utd": 1,
-             "bc_weight": 0.0}
+             "bc_weight": 0.0, "noise_beta": 0.0}
 
 
 def parse_args(argv=None):
@@ -132,6 +132,9 @@ def parse_args(argv=None):
     g.add_argument("--noise-clip", type=non_negative_float, default=0.5, help="target policy smoothing noise clip")
     g.add_argument("--policy-delay", type=positive_int, default=2, help="critic updates per actor update")
     g.add_argument("--exploration-noise", type=non_negative_float, default=0.1, help="std of Gaussian action noise")
+    g.add_argument("--noise-beta", type=non_negative_float, default=0.0, help="color of the exploration noise: its "
+                   "power spectrum along an episode falls as 1/f^beta (0: white, TD3's, each step independent; 1: "
+                   "pink, Eberhard et al. 2023; 2: red), drawn anew for each episode")
     g.add_argument("--buffer-size", type=positive_int, default=1_000_000, help="capacity of R_B in transitions")
     g.add_argument("--n-step", type=positive_int, default=1, help="the critic's target sums the rewards of up to "
                    "N consecutive steps of the transition's episode before it bootstraps (n-step returns); 1 is TD3's")
@@ -476,6 +479,7 @@ def train(args):
             run_dir = args.resume
             saved = plumbing.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts, map_location=device)
             s, obs, stats = LoopState(**saved["loop"]), saved["obs"], dict(saved.get("stats", {}))
+            episode_noise = saved.get("episode_noise")
         else:
             kernels = cpu_kernels.choose(args.kernels, [agent.actor.net, agent.critic.q1.net, disc.net],
                                          args.batch_size, device)
@@ -485,6 +489,7 @@ def train(args):
                 rates = [ret / len(data[0]) for ret, data in teacher_buffer.episodes]
                 s.rate_range = (min(rates), max(rates))
             obs, _ = env.reset()
+            episode_noise = None
             stats = {}  # the latest losses, logged at each evaluation
             config = {k: v for k, v in vars(args).items() if k != "given"}
             run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(
@@ -493,6 +498,12 @@ def train(args):
         ranked = args.return_bonus > 0 and args.return_scale == "rank"  # kept sorted, for scale_returns
         sorted_returns = self_buffer.sorted_episode_returns().to(device) if ranked else None
         needs_returns = args.return_bonus > 0 or args.return_decomposition > 0
+
+        def draw_episode_noise():
+            """Colored exploration noise for a whole episode (white noise is drawn step by step)."""
+            return colored_noise(args.noise_beta, env.max_episode_steps, act_dim, rng) if args.noise_beta > 0 else None
+        if episode_noise is None:
+            episode_noise = draw_episode_noise()
 
         def learning(step):
             """After the warm-up. Where the return bonus or decomposition is on, it also waits for an
@@ -511,7 +522,7 @@ def train(args):
             count_time()  # so that a run resumed from this checkpoint loses no training time
             # the latest losses too: D trains every --disc-freq steps, and the next evaluation logs them
             plumbing.save_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts, loop=dataclasses.asdict(s), obs=obs,
-                                     stats={k: float(v) for k, v in stats.items()})
+                                     stats={k: float(v) for k, v in stats.items()}, episode_noise=episode_noise)
 
         print(f"run folder: {run_dir}\nCPU: {plumbing.cpu_model()}, kernels: {s.kernels}", flush=True)
         if use_demos:
@@ -528,7 +539,9 @@ def train(args):
             if not learning(s.global_step - 1):
                 action = env.action_space.sample()
             else:
-                action = agent.explore(obs, args.exploration_noise, rng)
+                step_of_episode = (self_buffer.ptr - s.episode_start) % args.buffer_size
+                action = agent.explore(obs, args.exploration_noise, rng, None if episode_noise is None
+                                       else episode_noise[min(step_of_episode, len(episode_noise) - 1)])
             if args.absorbing and obs[-1] == 1.0:  # the absorbing state: a zero action, as in the demos
                 action = np.zeros(act_dim, np.float32)
             next_obs, reward, terminated, truncated, info = env.step(action)
@@ -553,6 +566,7 @@ def train(args):
                             s.first_promotion_step = s.global_step
                 obs, _ = env.reset()
                 s.episode_start = self_buffer.ptr
+                episode_noise = draw_episode_noise()
 
             # dynamic alpha: args.alpha until the first promotion, then 0 (at once or annealed)
             if not (args.fixed_alpha or args.no_lfd) and s.first_promotion_step is not None:

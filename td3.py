@@ -76,6 +76,29 @@ def make_adam(params, lr):
         return torch.optim.Adam(params, lr=lr, foreach=True)
 
 
+def colored_noise(beta, steps, dims, rng):
+    """(steps, dims) Gaussian noise, unit variance at every step, whose power spectrum along time
+    falls as 1/f^beta: 0 is white noise, 1 pink, 2 red (close to a random walk). Drawn in the
+    frequency domain with random phases and amplitudes (Timmer and Koenig 1995), the lowest
+    frequency 1/steps standing in for the constant term. Pink exploration noise beat white and
+    Ornstein-Uhlenbeck noise for TD3 and SAC across tasks in Eberhard et al. 2023 ("Pink noise is
+    all you need")."""
+    freqs = np.fft.rfftfreq(steps)
+    freqs[0] = 1.0 / steps
+    scale = freqs ** (-beta / 2.0)
+    coeffs = scale[:, None] * (rng.normal(size=(len(freqs), dims)) + 1j * rng.normal(size=(len(freqs), dims)))
+    coeffs[0].imag = 0.0  # the constant term is real, as is the Nyquist term where steps is even
+    single = np.zeros(len(freqs), bool)
+    single[0] = True
+    if steps % 2 == 0:
+        coeffs[-1].imag = 0.0
+        single[-1] = True
+    noise = np.fft.irfft(coeffs, n=steps, axis=0)
+    # each step's variance: the real terms count once, the others (cos and sin parts) 2^2 times
+    std = np.sqrt(np.sum(np.where(single, 1.0, 4.0) * scale**2)) / steps
+    return (noise / std).astype(np.float32)
+
+
 class TD3:
     def __init__(self, obs_dim, act_dim, action_low, action_high, hidden=(256, 256), lr=3e-4,
                  gamma=0.99, tau=0.005, policy_noise=0.2, noise_clip=0.5, policy_delay=2,
@@ -110,10 +133,14 @@ class TD3:
         actor = self.actor_target if target else self.actor
         return actor(obs.unsqueeze(0))[0].cpu().numpy()
 
-    def explore(self, obs, exploration_noise, rng):
-        """The actor's action plus Gaussian noise (std: exploration_noise x half the action range)."""
+    def explore(self, obs, exploration_noise, rng, unit_noise=None):
+        """The actor's action plus Gaussian noise (std: exploration_noise x half the action range):
+        white, drawn from rng, or the given unit-variance sample (one step of colored_noise)."""
         low, high = self.action_bounds
-        noise = rng.normal(0.0, exploration_noise * (high - low) / 2)
+        if unit_noise is None:
+            noise = rng.normal(0.0, exploration_noise * (high - low) / 2)
+        else:
+            noise = unit_noise * exploration_noise * (high - low) / 2
         return np.clip(self.act(obs) + noise, low, high).astype(np.float32)
 
     def update(self, obs, actions, rewards, next_obs, terminated, next_action_mask=None, discount=None, bc=None):

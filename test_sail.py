@@ -15,7 +15,7 @@ import cpu_kernels
 from buffers import ReplayBuffer, TeacherBuffer, load_demos, mixed_batch, save_demos
 from envs import absorbing_state, add_features, make_env, rollout
 from plumbing import ConfigError
-from td3 import TD3
+from td3 import TD3, colored_noise
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 # the demo files committed in demos/ and their teacher return bands (make_demos.BANDS)
@@ -793,6 +793,21 @@ def test_behaviour_cloning_holds_the_actor_near_the_given_actions_against_q():
     assert -0.5 < final[10.0] < -0.3  # cloning outweighs Q's pull ten to one, so near -0.5, a little towards 0.5
 
 
+@pytest.mark.parametrize("beta", [0.0, 1.0, 2.0])
+def test_colored_noise_has_unit_variance_and_more_slow_drift_as_beta_grows(beta):
+    rng = np.random.default_rng(0)
+    noise = np.stack([colored_noise(beta, 1000, 2, rng) for _ in range(300)])  # (episodes, steps, dims)
+    assert noise.dtype == np.float32 and noise.shape == (300, 1000, 2)
+    assert abs(noise.std() - 1.0) < 0.05
+    lag1 = np.mean([np.corrcoef(episode[:-1, 0], episode[1:, 0])[0, 1] for episode in noise])
+    episode_means = noise.mean(1).std()  # how far a whole episode's actions are pushed one way
+    low, high = {0.0: (-0.02, 0.02), 1.0: (0.6, 0.9), 2.0: (0.97, 1.0)}[beta]
+    assert low < lag1 < high
+    assert episode_means > {0.0: 0.0, 1.0: 0.1, 2.0: 0.25}[beta]
+    if beta == 0.0:
+        assert episode_means < 0.05
+
+
 def test_n_step_target_sums_the_discounted_rewards_inside_the_episode_then_bootstraps():
     import argparse
     agent = TD3(obs_dim=1, act_dim=1, action_low=-np.ones(1), action_high=np.ones(1), hidden=(8, 8))
@@ -1035,9 +1050,10 @@ def test_resume_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos, straigh
 
 
 def test_resume_with_return_decomposition_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos):
-    """The reward model, its optimizer and the buffer's episode bounds are in the checkpoint."""
+    """The reward model, its optimizer, the buffer's episode bounds and the current episode's
+    colored exploration noise (stopped mid-episode) are in the checkpoint."""
     flags = [*RESUME_FLAGS, "--demos", poor_hopper_demos, "--return-decomposition", "1", "--decomposition-subset", "16",
-             "--output-dir", str(tmp_path)]
+             "--noise-beta", "1", "--output-dir", str(tmp_path)]
     straight, first = run_scripts(("sail.py", *flags, "--total-timesteps", "1500", "--run-name", "a"),
                                   ("sail.py", *flags, "--total-timesteps", "700", "--run-name", "b"))
     assert straight.returncode == 0 and first.returncode == 0, (straight.stderr + first.stderr)[-3000:]
