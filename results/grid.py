@@ -113,6 +113,9 @@ GRIDS = {
     # behaviour cloning of R_E in TD3+BC's form on top of SAIL's defaults, at TD3+BC's weight
     "learning-bc": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                         {"sail-bc0.4": ("sail.py", [*OFF_POLICY, "--bc-weight", "0.4"])}, [1, 2, 3]),
+    # pink exploration noise (Eberhard et al. 2023), so that whole episodes differ and the ratchet has better ones to keep
+    "learning-pink": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                          {"sail-pink": ("sail.py", [*OFF_POLICY, "--noise-beta", "1"])}, [1, 2, 3]),
     # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
