@@ -219,10 +219,14 @@ class TeacherBuffer:
 
 def load_teacher_buffer(path, env_id, env, num_demos, capacity, time_feature, absorbing):
     """R_E from the first `num_demos` episodes of a demo file, with the same observation
-    features (time, absorbing state) that `env`'s wrappers add online."""
-    raw_obs_dim = env.observation_space.shape[0] - int(time_feature) - int(absorbing)  # as the files store them
+    features (time, absorbing state) that `env`'s wrappers add online, and without the
+    contact forces that `env` drops (make_env's contact_forces=False)."""
+    raw_obs_dim = env.observation_space.shape[0] - int(time_feature) - int(absorbing)
+    file_obs_dim = raw_obs_dim + getattr(env, "dropped_obs_dims", 0)  # demo files keep the env's full observation
     teacher_buffer = TeacherBuffer(capacity)
-    for episode in load_demos(path, env_id, raw_obs_dim, env.action_space.shape[0], num_demos):
+    for episode in load_demos(path, env_id, file_obs_dim, env.action_space.shape[0], num_demos):
+        for key in ("observations", "next_observations"):
+            episode[key] = episode[key][:, :raw_obs_dim]  # the dropped entries are the last ones
         if len(episode["actions"]) > capacity:
             raise ConfigError(f"--teacher-capacity {capacity} is smaller than a demo episode")
         teacher_buffer.add_episode(episode["episodic_return"],

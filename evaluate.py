@@ -23,7 +23,8 @@ def save_model(run_dir, agent, disc, args):
     if disc is not None:
         model["discriminator"] = disc
     plumbing.save_checkpoint(os.path.join(run_dir, "model.pt"), model, env=args.env, hidden=args.hidden,
-                             time_feature=args.time_feature, absorbing=args.absorbing)
+                             time_feature=args.time_feature, absorbing=args.absorbing,
+                             contact_forces=getattr(args, "contact_forces", True))
 
 
 def deploys_target(args):
@@ -49,7 +50,7 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0):
     torch.set_num_threads(threads)
     try:
         env = make_env(config.env, seed, time_feature=config.time_feature, absorbing=config.absorbing,
-                       render_mode="rgb_array" if video else None)
+                       render_mode="rgb_array" if video else None, contact_forces=getattr(config, "contact_forces", True))
     except AttributeError as e:
         raise ConfigError(f"{run_dir}/config.json lacks {e.name}: not a run folder of sail.py or bc.py") from None
     if video is not None:

@@ -83,7 +83,7 @@ RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
 PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
              "decomposition_unit": "range", "n_step": 1, "utd": 1,
-             "bc_weight": 0.0, "noise_beta": 0.0}
+             "bc_weight": 0.0, "noise_beta": 0.0, "contact_forces": True}
 
 
 def parse_args(argv=None):
@@ -168,6 +168,9 @@ def parse_args(argv=None):
                    "per reward-model minibatch (RRD's K); --batch-size / K episodes per minibatch")
     g.add_argument("--time-feature", action=argparse.BooleanOptionalAction, default=True, help="append 1 - t/T to obs")
     g.add_argument("--absorbing", action=argparse.BooleanOptionalAction, default=False, help="DAC absorbing states")
+    g.add_argument("--contact-forces", action=argparse.BooleanOptionalAction, default=True, help="keep the 78 "
+                   "contact forces (cfrc_ext) in Ant-v5's observation, as gymnasium v5 does (Humanoid-v5 likewise); "
+                   "--no-contact-forces drops them for every network, as Ant-v4's 27-dim default")
 
     g = p.add_argument_group("discriminator")
     g.add_argument("--disc-hidden", type=positive_int, nargs="+", default=[256, 256], help="hidden sizes (tanh)")
@@ -445,7 +448,7 @@ def train(args):
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
-    env_options = {"time_feature": args.time_feature, "absorbing": args.absorbing}
+    env_options = {"time_feature": args.time_feature, "absorbing": args.absorbing, "contact_forces": args.contact_forces}
     env = make_env(args.env, args.seed, **env_options)
     eval_env = make_env(args.env, args.seed + 100, **env_options)
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]

@@ -452,6 +452,35 @@ def test_shipped_demos_load_and_are_sub_optimal(env_id):
         assert ep["episodic_return"] == pytest.approx(float(np.sum(ep["rewards"], dtype=np.float64)), rel=1e-4)
 
 
+def test_no_contact_forces_drops_the_last_observation_entries_online_and_from_the_demos():
+    """Ant-v5 without contact forces: the same steps and returns, the first 27 entries of the
+    observation; the teacher buffer loads the shipped 105-dim demos cut to the same entries."""
+    from buffers import load_teacher_buffer
+    full = make_env("Ant-v5", seed=4, sparse=False, time_feature=False)
+    cut = make_env("Ant-v5", seed=4, sparse=False, time_feature=False, contact_forces=False)
+    assert (cut.dropped_obs_dims, cut.observation_space.shape, full.dropped_obs_dims) == (78, (27,), 0)
+    obs_full, obs_cut = full.reset(seed=4)[0], cut.reset(seed=4)[0]
+    contact = 0.0
+    for _ in range(100):
+        np.testing.assert_array_equal(obs_cut, obs_full[:27])
+        action = full.action_space.sample()
+        obs_full, r_full, *_ = full.step(action)
+        obs_cut, r_cut, *_ = cut.step(action)
+        assert r_cut == r_full
+        contact += np.abs(obs_full[27:]).sum()
+    assert contact > 0  # there were contact forces to drop
+    env = make_env("Ant-v5", seed=0, contact_forces=False)  # with the time feature, as sail.py
+    demos = os.path.join(HERE, "demos", "Ant-v5.npz")
+    teacher_buffer = load_teacher_buffer(demos, "Ant-v5", env, 1, 10_000, time_feature=True, absorbing=False)
+    (obs, _, next_obs, _), _, _ = teacher_buffer.sample_steps(64, 1, False)
+    assert obs.shape[-1] == next_obs.shape[-1] == 28
+    raw = load_demos(demos, "Ant-v5", 105, 8, 1)[0]["observations"]
+    rows = {tuple(np.round(r, 5)) for r in raw[:, :27]}
+    assert all(tuple(np.round(r, 5)) in rows for r in obs.reshape(-1, 28)[:, :27].numpy())
+    with pytest.raises(ConfigError, match="no contact forces"):
+        make_env("Hopper-v5", seed=0, contact_forces=False)
+
+
 # ---------------------------------------------------------------------------------------------
 # td3.py and make_demos.py
 # ---------------------------------------------------------------------------------------------
@@ -1201,6 +1230,7 @@ def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos, caps
                  ["--env", "nosuchmodule:Foo-v0", *out],
                  ["--env", "Hopper-v5", "--demos", str(tmp_path), *out],
                  ["--hidden", "0", *out],
+                 ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--no-contact-forces", *out],
                  ["--eval-freq", "5000", "--total-timesteps", "1000", *out],
                  ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--output-dir", str(blocker / "runs")]):
         assert_one_line_error(main_in_process(sail.main, argv, capsys))

@@ -44,7 +44,8 @@ for name in ("config.json", "checkpoint.pt"):
 config = json.load(open(os.path.join(args.run_dir, "config.json")))
 torch.set_num_threads(1)
 torch.set_grad_enabled(False)
-env = make_env(config["env"], args.seed, time_feature=config["time_feature"], absorbing=config["absorbing"])
+env = make_env(config["env"], args.seed, time_feature=config["time_feature"], absorbing=config["absorbing"],
+               contact_forces=config.get("contact_forces", True))
 agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low, env.action_space.high,
             hidden=config["hidden"], critic_layer_norm=config.get("critic_layer_norm", False))
 checkpoint = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), {"agent": agent})

@@ -116,6 +116,14 @@ GRIDS = {
     # pink exploration noise (Eberhard et al. 2023), so that whole episodes differ and the ratchet has better ones to keep
     "learning-pink": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                           {"sail-pink": ("sail.py", [*OFF_POLICY, "--noise-beta", "1"])}, [1, 2, 3]),
+    # D's negatives from the 2000 most recent transitions (the paper's SAIL-OnPolicy ablation) on top of SAIL's
+    # defaults: once the agent matches R_E, recent steps against R_E's best episodes is the contrast that pushes on
+    "learning-onpolicy": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                              {"sail-onpolicy": ("sail.py", [*OFF_POLICY, "--on-policy-disc"])}, [1, 2, 3]),
+    # Ant-v5 without its 78 contact forces in the observation (27 entries, Ant-v4's default; the paper's Ant-v2
+    # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
+    "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*OFF_POLICY, "--no-contact-forces"])},
+                                [1, 2, 3]),
     # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],

@@ -37,7 +37,8 @@ if not config.get("return_decomposition"):
 torch.set_num_threads(1)
 torch.set_grad_enabled(False)
 env = make_env(config["env"], args.seed, sparse=False, time_feature=config["time_feature"],
-               absorbing=config["absorbing"])
+               absorbing=config["absorbing"],
+               contact_forces=config.get("contact_forces", True))
 obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
 agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidden=config["hidden"],
             critic_layer_norm=config.get("critic_layer_norm", False))
