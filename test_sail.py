@@ -1595,6 +1595,15 @@ def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path, c
     assert [int(r["global_step"]) for r in read_csv(tmp_path / "other" / "r")] == [200, 400]
 
 
+def test_grid_list_into_a_closed_pipe_is_quiet():
+    """`grid.py list GRID | head -1`: the reader closes the pipe early; no traceback."""
+    proc = subprocess.Popen([sys.executable, os.path.join(HERE, "results", "grid.py"), "list", "learning"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # before the script writes a line: its first write meets a closed pipe
+    stderr = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 1 and stderr == "", stderr
+
+
 def test_bench_times_every_part_with_sail_defaults():
     """bench.py drives sail.py's update and loop directly, so a change of sail.py's defaults (the
     return bonus needs episode returns in the buffers) must keep it running end to end."""
