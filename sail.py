@@ -83,7 +83,7 @@ RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
 PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
              "decomposition_unit": "range", "n_step": 1, "utd": 1,
-             "bc_weight": 0.0, "noise_beta": 0.0, "contact_forces": True}
+             "bc_weight": 0.0, "noise_beta": 0.0, "contact_forces": True, "on_policy_from": "start"}
 
 
 def parse_args(argv=None):
@@ -194,6 +194,9 @@ def parse_args(argv=None):
                    help="ablation: D's negatives are the most recent samples, not the whole R_B")
     g.add_argument("--on-policy-window", type=positive_int, default=2_000,
                    help="recent transitions that --on-policy-disc draws negatives from")
+    g.add_argument("--on-policy-from", choices=["start", "promotion"], default="start",
+                   help="when --on-policy-disc starts: from the start (the paper's ablation), or from the first "
+                        "promotion, before which D sees the whole R_B as the paper's SAIL")
 
     argv = sys.argv[1:] if argv is None else argv
     p.set_defaults(**PRESETS[p.parse_known_args(argv)[0].algo])
@@ -218,6 +221,8 @@ def check_args(p, args):
     if args.reward == "none" and args.return_bonus <= 0 and args.return_decomposition <= 0:
         p.error("--reward none leaves the critic only the return bonus or decomposition: give --return-bonus > 0 "
                 "or --return-decomposition > 0")
+    if args.on_policy_from != "start" and not args.on_policy_disc:
+        p.error(f"--on-policy-from {args.on_policy_from} goes with --on-policy-disc")
     if args.bc_weight > 0 and args.reward not in ("sail", "airl"):
         p.error(f"--bc-weight clones R_E's actions: --reward {args.reward} learns without demos")
     if args.return_decomposition > 0 and args.decomposition_subset > args.batch_size:
@@ -302,12 +307,12 @@ def shaped_reward(disc, obs, actions, kind):
     return logit  # airl: log D - log(1 - D) = x
 
 
-def train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args):
-    """--disc-steps minibatches of Eq. (4): R_E labelled 1, R_B (or its recent part) 0."""
+def train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args, recent=False):
+    """--disc-steps minibatches of Eq. (4): R_E labelled 1, R_B (or, `recent`, its recent part) 0."""
     device = disc.obs_norm.mean.device
     for _ in range(args.disc_steps):
         t_obs, t_act, _, _ = teacher_buffer.sample(args.disc_batch_size)
-        if args.on_policy_disc:
+        if recent:
             b_obs, b_act, *_ = self_buffer.sample_recent(args.disc_batch_size, args.on_policy_window)
         else:
             b_obs, b_act, *_ = self_buffer.sample(args.disc_batch_size)
@@ -579,7 +584,8 @@ def train(args):
             if learning(s.global_step):
                 # 3. discriminator, Eq. (4): teacher samples vs the whole R_B (off-policy), or recent ones
                 if use_demos and (not was_learning or (s.global_step - args.learning_starts) % args.disc_freq == 0):
-                    stats.update(train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args))
+                    recent = args.on_policy_disc and (args.on_policy_from == "start" or s.first_promotion_step is not None)
+                    stats.update(train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args, recent))
                 was_learning = True
 
                 # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)

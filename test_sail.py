@@ -744,8 +744,12 @@ SMOKE = {
     "sail": [],
     "fixed-alpha": ["--fixed-alpha"],
     "no-lfd": ["--no-lfd"],
-    "no-adaptation": ["--no-adaptation"],
-    "on-policy-disc": ["--on-policy-disc"],
+    "no-adaptation": ["--no-adaptation", "--kernels", "torch"],
+    "on-policy-disc": ["--on-policy-disc", "--kernels", "torch"],
+    # D's negatives from the whole R_B until the first promotion (never, without adaptation), then recent ones
+    "on-policy-from-promotion": ["--on-policy-disc", "--on-policy-from", "promotion", "--kernels", "torch"],
+    "on-policy-from-promotion-no-adaptation": ["--on-policy-disc", "--on-policy-from", "promotion", "--no-adaptation",
+                                               "--kernels", "torch"],
     "anneal": ["--alpha-anneal-steps", "500", "--bc-weight", "0.4"],  # with behaviour cloning of R_E
     "no-return-bonus": ["--return-bonus", "0"],
     "return-rank": ["--return-scale", "rank"],
@@ -964,6 +968,23 @@ def smoke_runs(tmp_path_factory, poor_hopper_demos):
     return {name: (proc, out / name) for name, proc in zip(SMOKE, procs)}
 
 
+def test_on_policy_disc_from_the_first_promotion(smoke_runs):
+    """--on-policy-from promotion: the whole-R_B D of the paper's SAIL while R_E holds only the
+    teacher, the on-policy D once an own episode has joined it (here before learning starts)."""
+    def learning(name):
+        proc, run_dir = smoke_runs[name]
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        return [{k: v for k, v in r.items() if k not in ("time", "steps_per_second")} for r in read_csv(run_dir)]
+    promoted = learning("on-policy-from-promotion")
+    assert int(promoted[0]["promotions"]) > 0
+    assert promoted == learning("on-policy-disc")
+    assert learning("on-policy-from-promotion-no-adaptation") == learning("no-adaptation")
+    assert learning("no-adaptation") != learning("on-policy-disc")
+    proc = run_script("sail.py", "--on-policy-from", "promotion", "--total-timesteps", "10")
+    assert_one_line_error(proc)
+    assert "--on-policy-from promotion goes with --on-policy-disc" in proc.stderr
+
+
 @pytest.mark.parametrize("name", sorted(SMOKE))
 def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
     proc, run_dir = smoke_runs[name]
@@ -990,7 +1011,7 @@ def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
         assert alphas == [0.0] * 4
     if name == "fixed-alpha":
         assert alphas == [0.5] * 4
-    if name in ("no-adaptation", "dac", "td3", "ircr", "rrd"):
+    if name in ("no-adaptation", "on-policy-from-promotion-no-adaptation", "dac", "td3", "ircr", "rrd"):
         assert all(int(r["promotions"]) == 0 for r in rows)
     if name in ("rrd", "decomposition"):  # the reward model trains with every TD3 update
         assert all(np.isfinite(float(r["decomposition_loss"])) for r in rows if int(r["global_step"]) >= 1000)

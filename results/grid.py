@@ -120,6 +120,12 @@ GRIDS = {
     # defaults: once the agent matches R_E, recent steps against R_E's best episodes is the contrast that pushes on
     "learning-onpolicy": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                               {"sail-onpolicy": ("sail.py", [*OFF_POLICY, "--on-policy-disc"])}, [1, 2, 3]),
+    # the same with D's negatives from the whole R_B until the first promotion: the on-policy D slowed the
+    # imitation phase (HalfCheetah-v5 seed 1: D 0.93 / 0.07 at 40k-50k steps, returns near -500 to 100k)
+    "learning-onpolicy-promotion": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                                        {"sail-onpolicy-promotion": ("sail.py", [*OFF_POLICY, "--on-policy-disc",
+                                                                                 "--on-policy-from", "promotion"])},
+                                        [1, 2, 3]),
     # Ant-v5 without its 78 contact forces in the observation (27 entries, Ant-v4's default; the paper's Ant-v2
     # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
     "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*OFF_POLICY, "--no-contact-forces"])},
