@@ -131,6 +131,7 @@ def train(args):
 
     start = time.time()
     with plumbing.StopRequest() as stop:
+        print(f"training the teacher on {args.env}, steps {first_step} to {args.total_timesteps}", flush=True)
         for global_step in range(first_step, args.total_timesteps + 1):
             if stop.requested:
                 if args.checkpoint:

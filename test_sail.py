@@ -649,18 +649,26 @@ def test_make_demos_stops_on_sigterm_with_a_checkpoint_that_continues(tmp_path):
     command = [sys.executable, "make_demos.py", "--env", "Hopper-v5", "--total-timesteps", "100000000",
                "--learning-starts", "100", "--eval-freq", "1000000", "--hidden", "16", "16",
                "--checkpoint", str(checkpoint), "--checkpoint-freq", "1000000", "--output", str(tmp_path / "d.npz")]
-    proc = subprocess.Popen(command, cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(6)
-    proc.send_signal(signal.SIGTERM)
-    out, err = proc.communicate(timeout=60)
-    assert proc.returncode == 143 and "Traceback" not in err, err[-3000:]
+
+    def start_then_stop(signum):
+        """Starts the command, waits for its training loop (where the stop handler is in place: on a
+        loaded machine the imports alone can take seconds), lets it run, stops it: stdout, stderr."""
+        proc = subprocess.Popen(command, cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        lines = []
+        while not (lines and lines[-1].startswith("training the teacher")):
+            lines.append(proc.stdout.readline())
+            assert lines[-1], proc.communicate(timeout=60)[1][-3000:]  # ended before its loop
+        time.sleep(2)
+        proc.send_signal(signum)
+        out, err = proc.communicate(timeout=60)
+        return proc.returncode, "".join(lines) + out, err
+
+    code, out, err = start_then_stop(signal.SIGTERM)
+    assert code == 143 and "Traceback" not in err, err[-3000:]
     step = torch.load(checkpoint, weights_only=True)["global_step"]
     assert step > 0 and f"stopped at step {step}" in out
-    proc = subprocess.Popen(command, cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(6)
-    proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130 and f"resumed from {checkpoint} at step {step}" in out, err[-3000:]
+    code, out, err = start_then_stop(signal.SIGINT)
+    assert code == 130 and f"resumed from {checkpoint} at step {step}" in out, err[-3000:]
     assert torch.load(checkpoint, weights_only=True)["global_step"] >= step
 
 
