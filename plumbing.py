@@ -18,7 +18,9 @@ import sys
 import time
 
 import numpy as np
-import torch
+
+# torch is imported inside the checkpoint functions that use it, so that a script which only needs
+# the flags and files here (results/grid.py) starts without loading it (~2 s)
 
 
 class ConfigError(Exception):
@@ -195,6 +197,7 @@ def check_tensorboard(parser, args):
 
 def _to_safe(x):
     """numpy arrays and scalars -> tensors and Python numbers (marked, to be turned back)."""
+    import torch
     if isinstance(x, np.ndarray):
         return {"__ndarray__": torch.from_numpy(np.ascontiguousarray(x)).clone()}
     if isinstance(x, np.generic):
@@ -219,6 +222,7 @@ def _from_safe(x):
 def save_checkpoint(path, parts, **values):
     """Writes the state_dict() of every part (networks, optimisers, buffers, envs, RNGs) and
     plain values (tensors, numpy arrays, numbers, strings, lists, dicts) atomically."""
+    import torch
     state = {name: part.state_dict() for name, part in parts.items()} | values
     atomic_write(path, lambda f: torch.save(_to_safe(state), f))
 
@@ -227,6 +231,7 @@ def load_checkpoint(path, parts=(), map_location=None):
     """Reads a file written by save_checkpoint with torch's weights-only unpickler (a file that
     would run code when unpickled is refused, as is any unreadable one: ConfigError), loads the
     state of each of `parts` into it, and returns the whole dict."""
+    import torch
     try:
         state = _from_safe(torch.load(path, map_location=map_location, weights_only=True))
         for name, part in dict(parts).items():
@@ -244,10 +249,12 @@ class RNGs:
         self.rng = rng
 
     def state_dict(self):
+        import torch
         return {"numpy": self.rng.bit_generator.state, "torch": torch.get_rng_state(),
                 "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
 
     def load_state_dict(self, state):
+        import torch
         self.rng.bit_generator.state = state["numpy"]
         torch.set_rng_state(state["torch"])
         if state["cuda"] and torch.cuda.is_available():

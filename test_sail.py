@@ -37,19 +37,14 @@ def run_scripts(*commands, timeout=240, at_once=None):
     some 70 times. The child runs the script as `__main__` with its own argv, its stdout and
     stderr in files, and exits with the code a real `python SCRIPT` would. The tests of signals
     and of Ctrl-C while the libraries load start real interpreters (subprocess.Popen)."""
-    import multiprocessing
     import tempfile
-    ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(["torch._dynamo", "mujoco", "sail", "gail", "bc", "test_sail"])
     at_once = at_once or len(commands)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(0, len(commands), at_once):
             chunk = commands[i:i + at_once]
             outputs = [(os.path.join(tmp, f"{i + j}.out"), os.path.join(tmp, f"{i + j}.err")) for j in range(len(chunk))]
-            procs = [ctx.Process(target=_script_as_main, args=(args, out, err)) for args, (out, err) in zip(chunk, outputs)]
-            for proc in procs:
-                proc.start()
+            procs = [start_script(args, out, err) for args, (out, err) in zip(chunk, outputs)]
             for args, proc, (out, err) in zip(chunk, procs, outputs):
                 proc.join(timeout)
                 if proc.exitcode is None:
@@ -60,12 +55,26 @@ def run_scripts(*commands, timeout=240, at_once=None):
     return results
 
 
-def _script_as_main(args, out_path, err_path):
+def start_script(args, out_path, err_path):
+    """`python ARGS` as a started child of the fork server (see run_scripts), its stdout and
+    stderr written to the given files: a multiprocessing.Process, which `kill()` stops at once."""
+    import multiprocessing
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(["torch._dynamo", "mujoco", "sail", "gail", "bc", "test_sail"])
+    # the environment of now, not the fork server's (a test may have set a variable since it started)
+    proc = ctx.Process(target=_script_as_main, args=(args, out_path, err_path, dict(os.environ)))
+    proc.start()
+    return proc
+
+
+def _script_as_main(args, out_path, err_path, environ):
     """In a child of the fork server: what `python ARGS[0] ARGS[1:]` does, run from this folder.
     A SystemExit or an exception ends the child as it would end the interpreter: its exit code,
     or a traceback and exit code 1."""
     import runpy
     os.chdir(HERE)
+    os.environ.clear()
+    os.environ.update(environ)
     for fd, path in ((1, out_path), (2, err_path)):
         os.dup2(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), fd)
     script, *argv = args
@@ -646,22 +655,23 @@ def test_make_demos_stops_on_sigterm_with_a_checkpoint_that_continues(tmp_path):
     import signal
     import time
     checkpoint = tmp_path / "teacher.pt"
-    command = [sys.executable, "make_demos.py", "--env", "Hopper-v5", "--total-timesteps", "100000000",
+    command = ["make_demos.py", "--env", "Hopper-v5", "--total-timesteps", "100000000",
                "--learning-starts", "100", "--eval-freq", "1000000", "--hidden", "16", "16",
                "--checkpoint", str(checkpoint), "--checkpoint-freq", "1000000", "--output", str(tmp_path / "d.npz")]
+    out_path, err_path = tmp_path / "out", tmp_path / "err"
 
     def start_then_stop(signum):
         """Starts the command, waits for its training loop (where the stop handler is in place: on a
         loaded machine the imports alone can take seconds), lets it run, stops it: stdout, stderr."""
-        proc = subprocess.Popen(command, cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        lines = []
-        while not (lines and lines[-1].startswith("training the teacher")):
-            lines.append(proc.stdout.readline())
-            assert lines[-1], proc.communicate(timeout=60)[1][-3000:]  # ended before its loop
-        time.sleep(2)
-        proc.send_signal(signum)
-        out, err = proc.communicate(timeout=60)
-        return proc.returncode, "".join(lines) + out, err
+        proc = start_script(command, out_path, err_path)
+        deadline = time.time() + 120
+        while not (out_path.exists() and "training the teacher" in out_path.read_text()):
+            assert proc.is_alive() and time.time() < deadline, err_path.read_text()[-3000:]  # ended before its loop
+            time.sleep(0.05)
+        time.sleep(1)
+        os.kill(proc.pid, signum)
+        proc.join(60)
+        return proc.exitcode, out_path.read_text(), err_path.read_text()
 
     code, out, err = start_then_stop(signal.SIGTERM)
     assert code == 143 and "Traceback" not in err, err[-3000:]
@@ -970,7 +980,7 @@ def smoke_runs(tmp_path_factory, poor_hopper_demos):
         common = ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--num-demos", "1", "--output-dir", str(out),
                   "--run-name", name, "--save-model", "--hidden", "32", "32", "--threads", "1", "--eval-episodes", "1"]
         commands.append(("bc.py", *common, *flags) if name == "bc" else
-                        ("sail.py", *common, "--total-timesteps", "1600", "--learning-starts", "1000",
+                        ("sail.py", *common, "--total-timesteps", "1200", "--learning-starts", "800",
                          "--eval-freq", "400", "--disc-freq", "200", "--disc-hidden", "32", "32", *flags))
     procs = run_scripts(*commands, at_once=max(2, os.cpu_count() or 2))
     return {name: (proc, out / name) for name, proc in zip(SMOKE, procs)}
@@ -1003,7 +1013,7 @@ def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
     assert all(1 <= float(r["eval_length"]) < 1000 for r in rows)  # an untrained hopper falls
     if name != "bc":  # before the first update the target actor is the actor: same start states, same return
         assert all(r["eval_return"] == r["eval_return_actor"] for r in rows)
-        assert all(r["eval_return_target"] == r["eval_return"] for r in rows if int(r["global_step"]) < 1000)
+        assert all(r["eval_return_target"] == r["eval_return"] for r in rows if int(r["global_step"]) < 800)
     model = torch.load(run_dir / "model.pt", weights_only=True)
     assert set(model["actor"]) and model["env"] == "Hopper-v5"
     config = json.load(open(run_dir / "config.json"))
@@ -1011,18 +1021,18 @@ def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
         assert "bc.py" in config["command"] and config["algo"] == "bc"
         assert [int(r["updates"]) for r in rows] == [100, 200, 300]
         return
-    assert "sail.py" in config["command"] and config["total_timesteps"] == 1600
-    assert [int(r["global_step"]) for r in rows] == [400, 800, 1200, 1600]
-    assert int(rows[-1]["updates"]) == (2 * 601 if name == "critic-layer-norm" else 601)  # --utd 2 there
+    assert "sail.py" in config["command"] and config["total_timesteps"] == 1200
+    assert [int(r["global_step"]) for r in rows] == [400, 800, 1200]
+    assert int(rows[-1]["updates"]) == (2 * 401 if name == "critic-layer-norm" else 401)  # --utd 2 there
     alphas = [float(r["alpha"]) for r in rows]
     if name in ("no-lfd", "dac", "td3", "ircr", "rrd"):
-        assert alphas == [0.0] * 4
+        assert alphas == [0.0] * 3
     if name == "fixed-alpha":
-        assert alphas == [0.5] * 4
+        assert alphas == [0.5] * 3
     if name in ("no-adaptation", "on-policy-from-promotion-no-adaptation", "dac", "td3", "ircr", "rrd"):
         assert all(int(r["promotions"]) == 0 for r in rows)
     if name in ("rrd", "decomposition"):  # the reward model trains with every TD3 update
-        assert all(np.isfinite(float(r["decomposition_loss"])) for r in rows if int(r["global_step"]) >= 1000)
+        assert all(np.isfinite(float(r["decomposition_loss"])) for r in rows if int(r["global_step"]) >= 800)
     else:
         assert all(r["decomposition_loss"] == "nan" for r in rows)
     if name in ("td3", "ircr", "rrd"):  # no discriminator trained
@@ -1076,9 +1086,9 @@ RESUME_FLAGS = ["--env", "Hopper-v5", "--learning-starts", "500", "--eval-freq",
 
 @pytest.fixture(scope="module")
 def straight_run(tmp_path_factory, poor_hopper_demos):
-    """A run of 1500 steps, never interrupted: what every interrupted and resumed one must equal."""
+    """A run of 1000 steps, never interrupted: what every interrupted and resumed one must equal."""
     out = tmp_path_factory.mktemp("straight")
-    proc = run_script("sail.py", *RESUME_FLAGS, "--demos", poor_hopper_demos, "--total-timesteps", "1500",
+    proc = run_script("sail.py", *RESUME_FLAGS, "--demos", poor_hopper_demos, "--total-timesteps", "1000",
                       "--output-dir", str(out), "--run-name", "a")
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out / "a"
@@ -1088,7 +1098,7 @@ def assert_same_run(run_a, run_b):
     drop = ("steps_per_second", "time")
     rows_a = [{k: v for k, v in r.items() if k not in drop} for r in read_csv(run_a)]
     rows_b = [{k: v for k, v in r.items() if k not in drop} for r in read_csv(run_b)]
-    assert len(rows_a) == 6 and rows_a == rows_b
+    assert len(rows_a) == 4 and rows_a == rows_b
     model_a = torch.load(run_a / "model.pt", weights_only=True)
     model_b = torch.load(run_b / "model.pt", weights_only=True)
     for key in ("actor", "critic", "discriminator"):
@@ -1102,7 +1112,7 @@ def test_resume_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos, straigh
                        "--output-dir", str(tmp_path), "--run-name", "b")
     assert first.returncode == 0, first.stderr[-3000:]
     # same thread count: with another one, MKL and oneDNN may sum in another order (seen on Intel)
-    resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1500")
+    resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1000")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert_same_run(straight_run, tmp_path / "b")
 
@@ -1112,10 +1122,10 @@ def test_resume_with_return_decomposition_equals_an_uninterrupted_run(tmp_path, 
     colored exploration noise (stopped mid-episode) are in the checkpoint."""
     flags = [*RESUME_FLAGS, "--demos", poor_hopper_demos, "--return-decomposition", "1", "--decomposition-subset", "16",
              "--noise-beta", "1", "--output-dir", str(tmp_path)]
-    straight, first = run_scripts(("sail.py", *flags, "--total-timesteps", "1500", "--run-name", "a"),
+    straight, first = run_scripts(("sail.py", *flags, "--total-timesteps", "1000", "--run-name", "a"),
                                   ("sail.py", *flags, "--total-timesteps", "700", "--run-name", "b"))
     assert straight.returncode == 0 and first.returncode == 0, (straight.stderr + first.stderr)[-3000:]
-    resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1500")
+    resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1000")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert_same_run(tmp_path / "a", tmp_path / "b")
     assert all(np.isfinite(float(r["decomposition_loss"])) for r in read_csv(tmp_path / "b")[2:])
@@ -1126,16 +1136,16 @@ def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_result(tmp_path
     whether it was killed between checkpoints or while writing one (atomic writes)."""
     import time
     run_dir = tmp_path / "k"
-    command = [sys.executable, "sail.py", *RESUME_FLAGS, "--demos", poor_hopper_demos, "--total-timesteps", "1500",
+    command = ["sail.py", *RESUME_FLAGS, "--demos", poor_hopper_demos, "--total-timesteps", "1000",
                "--checkpoint-freq", "50", "--output-dir", str(tmp_path), "--run-name", "k"]
     kills = 0
     for moment in ("after the first checkpoint", "while a checkpoint is written", "later"):
-        proc = subprocess.Popen(command, cwd=HERE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        proc = start_script(command, os.devnull, os.devnull)  # kill() sends SIGKILL
         # a checkpoint's write lasts milliseconds: if the polling misses every one for 5 s, kill anyway
         deadline = time.time() + (5 if moment == "while a checkpoint is written" and kills else 120)
         checkpoint = run_dir / "checkpoint.pt"
         start_mtime = checkpoint.stat().st_mtime_ns if checkpoint.exists() else 0
-        while time.time() < deadline and proc.poll() is None:
+        while time.time() < deadline and proc.is_alive():
             if moment == "while a checkpoint is written":
                 if any(p.name.startswith("checkpoint.pt.tmp") for p in run_dir.iterdir()):
                     break
@@ -1144,15 +1154,15 @@ def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_result(tmp_path
                     time.sleep(1.0)
                 break
             time.sleep(0.001)
-        if proc.poll() is None:
+        if proc.is_alive():
             proc.kill()
             kills += 1
-        proc.wait()
-        command = [sys.executable, "sail.py", "--resume", str(run_dir)]
+        proc.join()
+        command = ["sail.py", "--resume", str(run_dir)]
     assert kills >= 2  # the run was really cut short (it needs far longer than the waits above)
-    finished = run_script(*command[1:])
+    finished = run_script(*command)
     assert finished.returncode == 0, finished.stderr[-3000:]
-    assert int(read_csv(run_dir)[-1]["global_step"]) == 1500
+    assert int(read_csv(run_dir)[-1]["global_step"]) == 1000
     assert_same_run(straight_run, run_dir)
 
 
@@ -1167,7 +1177,7 @@ def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     assert "3 ended early" in lines[summary] and lines[summary + 1].startswith("teacher (1 episodes): first entry")
     assert lines[summary + 2].startswith("squared action norm per step: actor ")  # and the control cost it makes
     assert "control cost weight 0.001:" in lines[summary + 2]  # Hopper-v5's
-    training = lines[summary + 4:]  # R_B's episodes: the straight run's 1500 steps, nearly all falls
+    training = lines[summary + 4:]  # R_B's episodes: the straight run's 1000 steps, nearly all falls
     assert lines[summary + 3].startswith("training episodes (R_B") and len(training) == 1
     assert training[0].startswith("  0-50000: ") and int(training[0].split(" ended early")[0].split(", ")[-1]) >= 10
     assert missing.returncode == 2 and "has no config.json" in missing.stderr
@@ -1313,7 +1323,7 @@ def test_ctrl_c_or_sigterm_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path
     codes = {"SIGINT": 130, "SIGTERM": 143}
     procs = {signame: subprocess.Popen(  # one run per signal, side by side (a 2-core machine)
         [sys.executable, "sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "1000000",
-         "--learning-starts", "200", "--eval-freq", "1000", "--output-dir", str(tmp_path), "--run-name", signame, *TINY],
+         "--learning-starts", "200", "--eval-freq", "500", "--output-dir", str(tmp_path), "--run-name", signame, *TINY],
         cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for signame in codes}
     steps = {}
     for signame, proc in procs.items():
@@ -1321,7 +1331,7 @@ def test_ctrl_c_or_sigterm_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path
         deadline = time.time() + 120
         while not (run_dir / "progress.csv").exists() and time.time() < deadline:
             time.sleep(0.2)
-        time.sleep(0.3)  # some steps past the evaluation (the next is 1000 steps away), whose time must be kept too
+        time.sleep(0.3)  # some steps past the evaluation (the next is 500 steps away), whose time must be kept too
         proc.send_signal(getattr(signal, signame))
     for signame, proc in procs.items():
         run_dir = tmp_path / signame
@@ -1338,7 +1348,7 @@ def test_ctrl_c_or_sigterm_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path
     import sail
     for flag in (["--lr", "3e-4"], ["--env", "Walker2d-v5"]):
         assert_one_line_error(main_in_process(sail.main, ["--resume", str(tmp_path / "SIGINT"), *flag], capsys))
-    resumed = run_scripts(*[("sail.py", "--resume", str(tmp_path / signame), "--total-timesteps", "2000")
+    resumed = run_scripts(*[("sail.py", "--resume", str(tmp_path / signame), "--total-timesteps", "1000")
                             for signame in codes])  # each to its next evaluation
     for signame, proc in zip(codes, resumed):
         assert proc.returncode == 0, proc.stderr[-3000:]
@@ -1607,17 +1617,18 @@ def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path, c
         assert main_in_process(grid_module.main, ["task", "smoke", runs, str(i), "--dry-run"],
                                capsys).stdout.strip() == line
     assert_one_line_error(main_in_process(grid_module.main, ["task", "smoke", runs, "3", "--dry-run"], capsys))
-    # locally through GNU parallel; a second call starts nothing (its job log)
-    assert run_script(grid, "local", "smoke", runs, "--jobs", "2").returncode == 0
+    # locally through GNU parallel (a second call starts nothing: its job log); beside it, a run stopped
+    # half-way, which continues from its checkpoint when its line runs again
+    flags = lines[0].split(" sail.py ")[1].split()
+    half = [*flags[:flags.index("--total-timesteps") + 1], "200", *flags[flags.index("--total-timesteps") + 2:]]
+    local, stopped = run_scripts((grid, "local", "smoke", runs, "--jobs", "2"),
+                                 (grid, "run", str(tmp_path / "other"), "r", "sail.py", *half))
+    assert local.returncode == 0 and stopped.returncode == 0
     for seed in (1, 2):
         assert int(read_csv(tmp_path / "runs" / f"Pendulum-v1__td3__{seed}")[-1]["global_step"]) == 400
     before = (tmp_path / "runs" / "joblog").read_text()
     assert run_script(grid, "local", "smoke", runs, "--jobs", "2").returncode == 0
     assert (tmp_path / "runs" / "joblog").read_text() == before
-    # a run stopped half-way continues from its checkpoint when its line runs again
-    flags = lines[0].split(" sail.py ")[1].split()
-    half = [*flags[:flags.index("--total-timesteps") + 1], "200", *flags[flags.index("--total-timesteps") + 2:]]
-    assert run_script(grid, "run", str(tmp_path / "other"), "r", "sail.py", *half).returncode == 0
     assert int(read_csv(tmp_path / "other" / "r")[-1]["global_step"]) == 200
     proc = run_script(grid, "run", str(tmp_path / "other"), "r", "sail.py", *flags)
     assert proc.returncode == 0 and "--resume" in proc.stdout
