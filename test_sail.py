@@ -35,8 +35,9 @@ def run_scripts(*commands, timeout=240, at_once=None):
     optimizers import on first use), MuJoCo and the repo's modules once: a new interpreter would
     spend 2-3 CPU seconds on those imports, the bulk of a short run, and this suite runs scripts
     some 70 times. The child runs the script as `__main__` with its own argv, its stdout and
-    stderr in files, and exits with the code a real `python SCRIPT` would. The tests of signals
-    and of Ctrl-C while the libraries load start real interpreters (subprocess.Popen)."""
+    stderr in files, and exits with the code a real `python SCRIPT` would. The tests of what the
+    shell sees when sail.py gets Ctrl-C or SIGTERM, and of Ctrl-C while the libraries load, start
+    real interpreters (subprocess.Popen)."""
     import tempfile
     at_once = at_once or len(commands)
     results = []

@@ -126,6 +126,13 @@ GRIDS = {
                                         {"sail-onpolicy-promotion": ("sail.py", [*OFF_POLICY, "--on-policy-disc",
                                                                                  "--on-policy-from", "promotion"])},
                                         [1, 2, 3]),
+    # the two phases' fixes together: LayerNorm critics (the imitation phase reached the teacher at 60-70k steps on
+    # HalfCheetah instead of 150-170k, then its ratchet crawled) and the on-policy D after the first promotion
+    # (the fastest ratchet on HalfCheetah: threshold 4062 -> 5248 in 120k steps, but first promoted only at 180k)
+    "learning-ln-onpolicy-promotion": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+                                           {"sail-ln-onpolicy-promotion": ("sail.py", [
+                                               *OFF_POLICY, "--critic-layer-norm", "--on-policy-disc",
+                                               "--on-policy-from", "promotion"])}, [1, 2, 3]),
     # Ant-v5 without its 78 contact forces in the observation (27 entries, Ant-v4's default; the paper's Ant-v2
     # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
     "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*OFF_POLICY, "--no-contact-forces"])},
