@@ -35,6 +35,8 @@ def grid(envs, methods, seeds):
 PAPER = [*OFF_POLICY, "--return-bonus", "0"]  # the paper's SAIL: sail.py without its return bonus
 SAIL = ("sail.py", [*OFF_POLICY, "--return-bonus", "1"])  # sail.py's defaults, the bonus written out
 DAC = ("sail.py", [*OFF_POLICY, "--algo", "dac"])
+# the layer-normed critics with the on-policy D from the first promotion (two grids build on it)
+LN_ONPOLICY_PROMOTION = [*OFF_POLICY, "--critic-layer-norm", "--on-policy-disc", "--on-policy-from", "promotion"]
 GRIDS = {
     # the runs behind README's tables of the paper's methods (300k env steps, 1 teacher episode)
     "evidence": (
@@ -130,17 +132,14 @@ GRIDS = {
     # HalfCheetah instead of 150-170k, then its ratchet crawled) and the on-policy D after the first promotion
     # (the fastest ratchet on HalfCheetah: threshold 4062 -> 5248 in 120k steps, but first promoted only at 180k)
     "learning-ln-onpolicy-promotion": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                                           {"sail-ln-onpolicy-promotion": ("sail.py", [
-                                               *OFF_POLICY, "--critic-layer-norm", "--on-policy-disc",
-                                               "--on-policy-from", "promotion"])}, [1, 2, 3]),
+                                           {"sail-ln-onpolicy-promotion": ("sail.py", LN_ONPOLICY_PROMOTION)}, [1, 2, 3]),
     # that pair with the rate-unit return decomposition: after the first promotion the pair's D rewards every
     # step alike (Swimmer-v5 seed 1 stalled there), and the decomposition, the one variant that lifted Swimmer,
     # credits the steps of an episode unlike each other
     "learning-ln-onpolicy-promotion-rrd": grid(
         ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
         {"sail-ln-onpolicy-promotion-rrd1-rate": ("sail.py", [
-            *OFF_POLICY, "--critic-layer-norm", "--on-policy-disc", "--on-policy-from", "promotion",
-            "--return-decomposition", "1", "--decomposition-unit", "rate"])}, [1, 2, 3]),
+            *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate"])}, [1, 2, 3]),
     # Ant-v5 without its 78 contact forces in the observation (27 entries, Ant-v4's default; the paper's Ant-v2
     # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
     "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*OFF_POLICY, "--no-contact-forces"])},
