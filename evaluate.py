@@ -46,7 +46,7 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0):
     if path is None or not os.path.isfile(os.path.join(run_dir, "config.json")):
         raise ConfigError(f"--evaluate {run_dir}: no config.json with model.pt or checkpoint.pt there")
     config = plumbing.read_config(run_dir)
-    saved = plumbing.load_checkpoint(path, map_location="cpu")  # also a run made with --device cuda
+    saved = plumbing.load_checkpoint(path)  # on the CPU, also a run made with --device cuda
     torch.set_num_threads(threads)
     try:
         env = make_env(config.env, seed, time_feature=config.time_feature, absorbing=config.absorbing,

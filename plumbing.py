@@ -227,13 +227,16 @@ def save_checkpoint(path, parts, **values):
     atomic_write(path, lambda f: torch.save(_to_safe(state), f))
 
 
-def load_checkpoint(path, parts=(), map_location=None):
+def load_checkpoint(path, parts=()):
     """Reads a file written by save_checkpoint with torch's weights-only unpickler (a file that
     would run code when unpickled is refused, as is any unreadable one: ConfigError), loads the
-    state of each of `parts` into it, and returns the whole dict."""
+    state of each of `parts` into it, and returns the whole dict.
+
+    Every tensor is read onto the CPU, where buffers and RNG states live; a part's load_state_dict
+    moves its tensors to the part's own device, so a run saved on cuda resumes on cuda or cpu."""
     import torch
     try:
-        state = _from_safe(torch.load(path, map_location=map_location, weights_only=True))
+        state = _from_safe(torch.load(path, map_location="cpu", weights_only=True))
         for name, part in dict(parts).items():
             part.load_state_dict(state[name])
     except Exception as e:

@@ -485,7 +485,7 @@ def train(args):
     with plumbing.StopRequest() as stop:
         if args.resume:
             run_dir = args.resume
-            saved = plumbing.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts, map_location=device)
+            saved = plumbing.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts)
             s, obs, stats = LoopState(**saved["loop"]), saved["obs"], dict(saved.get("stats", {}))
             episode_noise = saved.get("episode_noise")
         else:

@@ -1184,6 +1184,32 @@ def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     assert missing.returncode == 2 and "has no config.json" in missing.stderr
 
 
+def test_checkpoints_are_read_onto_the_cpu_whatever_the_run_device(tmp_path, monkeypatch):
+    """Buffers (numpy views) and RNG states only exist on the CPU, so a checkpoint is always read
+    with map_location="cpu" and each part's load_state_dict moves its own tensors: reading it onto
+    cuda made `--resume` of a `--device cuda` run fail (found on a GPU, where --resume now works
+    cuda->cuda, cuda->cpu and cpu->cuda)."""
+    import plumbing
+    rng = np.random.default_rng(0)
+    net = torch.nn.Linear(3, 2)
+    optimizer = torch.optim.Adam(net.parameters())
+    net(torch.ones(1, 3)).sum().backward()
+    optimizer.step()
+    path = tmp_path / "checkpoint.pt"
+    plumbing.save_checkpoint(path, {"net": net, "optimizer": optimizer, "rngs": plumbing.RNGs(rng)},
+                             obs=np.arange(3, dtype=np.float32))
+    map_locations, torch_load = [], torch.load
+    monkeypatch.setattr(torch, "load", lambda *a, **k: map_locations.append(k.get("map_location")) or torch_load(*a, **k))
+    net2 = torch.nn.Linear(3, 2)
+    optimizer2 = torch.optim.Adam(net2.parameters())
+    expected_draw = np.random.default_rng(0).bit_generator.state
+    saved = plumbing.load_checkpoint(path, {"net": net2, "optimizer": optimizer2, "rngs": plumbing.RNGs(np.random.default_rng(5))})
+    assert map_locations == ["cpu"]
+    assert isinstance(saved["obs"], np.ndarray) and saved["obs"].tolist() == [0, 1, 2]
+    assert torch.equal(net2.weight, net.weight) and optimizer2.state_dict()["state"][0]["step"] == 1
+    assert saved["rngs"]["numpy"] == expected_draw
+
+
 def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, straight_run, capsys):
     import shutil
     run = shutil.copytree(straight_run, tmp_path / "run")  # with model.pt (--save-model) and checkpoint.pt
