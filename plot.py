@@ -12,7 +12,8 @@ without it only the table is written);
 runs with N > 1 teacher episodes (--num-demos N) get their own <env>-Ndemos.png and section;
 results.md with, per env and method:
 seeds, env steps, final return (mean of the last 5 evaluations, for BC its last one; mean +- std
-over seeds), the env steps at which the evaluation return first reached the teacher's, the
+over seeds), the same for the Polyak-averaged target actor where a run evaluated it (its mean over
+seeds, then each seed's), the env steps at which the evaluation return first reached the teacher's, the
 env steps of the first promotion into the teacher buffer, and the mean evaluation return of the
 early phase (evaluations up to --early-steps, averaged over seeds).
 """
@@ -124,12 +125,16 @@ def summarise(runs, teacher, last, early_steps):
         reached.append(next((r["global_step"] for r in rows if r["eval_return"] >= teacher), None))
         promoted.append(next((r["global_step"] for r in rows if r["promotions"] > 0), None))
     steps = [rows[-1]["global_step"] for _, rows in runs]
+    # the Polyak-averaged target actor, evaluated beside the deployed policy (sail.py's --deploy)
+    targets = [np.mean([r.get("eval_return_target", np.nan) for r in rows[-last:]]) for _, rows in runs]
+    target = (f"{np.mean(targets):.0f} ({', '.join(f'{v:.0f}' for v in targets)})"
+              if not np.isnan(targets).any() else "")
 
     def when(values):
         return ", ".join("never" if v is None else f"{v / 1000:.0f}k" for v in values)
 
     return {"seeds": len(runs), "env steps": when(steps), "final": f"{np.mean(finals):.0f} +- {np.std(finals):.0f}",
-            "per seed": ", ".join(f"{v:.0f}" for v in finals), "vs teacher": f"{np.mean(finals) / teacher:.2f}x",
+            "per seed": ", ".join(f"{v:.0f}" for v in finals), "target actor": target, "vs teacher": f"{np.mean(finals) / teacher:.2f}x",
             "reached teacher": when(reached), "first promotion": when(promoted), "early": f"{np.mean(early):.0f}"}
 
 
@@ -184,7 +189,7 @@ def main():
             teachers[key] = teacher_return(config)
     os.makedirs(args.output_dir, exist_ok=True)
 
-    columns = ["method", "seeds", "env steps", "final", "per seed", "vs teacher", "reached teacher", "first promotion",
+    columns = ["method", "seeds", "env steps", "final", "per seed", "target actor", "vs teacher", "reached teacher", "first promotion",
                "early"]
     lines = []
     for (env_id, num_demos), methods in sorted(by_env.items()):

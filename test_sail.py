@@ -1477,6 +1477,7 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
                   "gamma": gamma, "return_bonus": 1.0}
         (run / "config.json").write_text(json.dumps(config))
         rows = [{k: "nan" for k in CSV_COLUMNS} | {"global_step": 10_000 * (i + 1), "eval_return": r,
+                                                    "eval_return_target": r + 10 * seed if gamma == 0.99 else "nan",
                                                     "promotions": int(seed == 1 and i >= 2)}
                 for i, r in enumerate(returns)]
         with open(run / "progress.csv", "w", newline="") as f:
@@ -1495,13 +1496,14 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
     teacher = float(np.load(os.path.join(HERE, "demos", "Hopper-v5.npz"))["episode_returns"][0])
     assert f"(teacher {teacher:.0f})" in table
     # final = mean of the last 5 evaluations: 1600 and 500, so 1050 +- 550 over the seeds
-    assert "| SAIL | 2 | 70k, 70k | 1050 +- 550 | 1600, 500 |" in table
+    # the target actor's final the same way (1610 and 520), empty where a run has no such column
+    assert "| SAIL | 2 | 70k, 70k | 1050 +- 550 | 1600, 500 | 1065 (1610, 520) | 0.80x |" in table
     # first return >= teacher (1317); first promotion; the mean up to 30k: 800 and 200 over the seeds
     assert "| 30k, never | 30k, never | 500 |" in table
     teacher4 = float(np.mean(np.load(os.path.join(HERE, "demos", "Hopper-v5.npz"))["episode_returns"][:4]))
     assert f"### Hopper-v5, 4 teacher episodes (teacher {teacher4:.0f})" in table
     assert "| SAIL | 1 | 70k | 500 +- 0 | 500 |" in table
-    assert "| SAIL (gamma 0.995) | 1 | 70k | 520 +- 0 | 520 |" in table
+    assert "| SAIL (gamma 0.995) | 1 | 70k | 520 +- 0 | 520 |  | 0.39x |" in table
     assert sorted(p.name for p in (tmp_path / "plots").glob("*.png")) == ["Hopper-v5-4demos.png",
                                                                          "Hopper-v5-ablations.png", "Hopper-v5.png"]
     from plot import method_name
