@@ -134,7 +134,8 @@ def summarise(runs, teacher, last, early_steps):
         return ", ".join("never" if v is None else f"{v / 1000:.0f}k" for v in values)
 
     return {"seeds": len(runs), "env steps": when(steps), "final": f"{np.mean(finals):.0f} +- {np.std(finals):.0f}",
-            "per seed": ", ".join(f"{v:.0f}" for v in finals), "target actor": target, "vs teacher": f"{np.mean(finals) / teacher:.2f}x",
+            "per seed": ", ".join(f"{v:.0f}" for v in finals), "target actor": target,
+            "vs teacher": f"{np.mean(finals) / teacher:.2f}x",
             "reached teacher": when(reached), "first promotion": when(promoted), "early": f"{np.mean(early):.0f}"}
 
 
@@ -189,8 +190,8 @@ def main():
             teachers[key] = teacher_return(config)
     os.makedirs(args.output_dir, exist_ok=True)
 
-    columns = ["method", "seeds", "env steps", "final", "per seed", "target actor", "vs teacher", "reached teacher", "first promotion",
-               "early"]
+    columns = ["method", "seeds", "env steps", "final", "per seed", "target actor", "vs teacher", "reached teacher",
+               "first promotion", "early"]
     lines = []
     for (env_id, num_demos), methods in sorted(by_env.items()):
         teacher = teachers.get((env_id, num_demos), float("nan"))
