@@ -1202,12 +1202,12 @@ def test_checkpoints_are_read_onto_the_cpu_whatever_the_run_device(tmp_path, mon
     monkeypatch.setattr(torch, "load", lambda *a, **k: map_locations.append(k.get("map_location")) or torch_load(*a, **k))
     net2 = torch.nn.Linear(3, 2)
     optimizer2 = torch.optim.Adam(net2.parameters())
-    expected_draw = np.random.default_rng(0).bit_generator.state
+    expected_state = np.random.default_rng(0).bit_generator.state
     saved = plumbing.load_checkpoint(path, {"net": net2, "optimizer": optimizer2, "rngs": plumbing.RNGs(np.random.default_rng(5))})
     assert map_locations == ["cpu"]
     assert isinstance(saved["obs"], np.ndarray) and saved["obs"].tolist() == [0, 1, 2]
     assert torch.equal(net2.weight, net.weight) and optimizer2.state_dict()["state"][0]["step"] == 1
-    assert saved["rngs"]["numpy"] == expected_draw
+    assert saved["rngs"]["numpy"] == expected_state
 
 
 def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, straight_run, capsys):
