@@ -83,7 +83,7 @@ RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
 PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
              "decomposition_unit": "range", "n_step": 1, "utd": 1,
-             "bc_weight": 0.0, "noise_beta": 0.0, "contact_forces": True, "on_policy_from": "start"}
+             "bc_weight": 0.0, "action_l2": 0.0, "noise_beta": 0.0, "contact_forces": True, "on_policy_from": "start"}
 
 
 def parse_args(argv=None):
@@ -143,6 +143,9 @@ def parse_args(argv=None):
     g.add_argument("--bc-weight", type=non_negative_float, default=0.0, help="behaviour cloning of R_E in the "
                    "actor's loss, as TD3+BC: Q over its mean magnitude plus this weight times the mean squared "
                    "distance to R_E's actions (TD3+BC's alpha 2.5 is 0.4); 0: off")
+    g.add_argument("--action-l2", type=non_negative_float, default=0.0, help="quadratic penalty on the actor's "
+                   "actions (per dimension, in units of half the action range) in its loss, weighed against Q over "
+                   "its mean magnitude as --bc-weight is; 0: off")
     g.add_argument("--update-every", type=positive_int, default=1,
                    help="env steps between groups of as many TD3 updates (authors: 1000)")
     g.add_argument("--utd", type=positive_int, default=1, help="update-to-data ratio: TD3 updates (and "
@@ -421,7 +424,7 @@ def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_ran
         teacher_obs, teacher_actions = (x.to(agent.device) for x in teacher_buffer.sample(args.batch_size)[:2])
         bc = (teacher_obs, teacher_actions, args.bc_weight)
     losses = agent.update(obs[:, 0], actions[:, 0], n_step_return, next_obs, terminated, next_action_mask,
-                          discount=args.gamma ** (last + 1.0), bc=bc)
+                          discount=args.gamma ** (last + 1.0), bc=bc, action_l2=args.action_l2)
     return losses | {"reward_mean": rewards[:, 0].mean()}
 
 

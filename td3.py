@@ -143,7 +143,8 @@ class TD3:
             noise = unit_noise * exploration_noise * (high - low) / 2
         return np.clip(self.act(obs) + noise, low, high).astype(np.float32)
 
-    def update(self, obs, actions, rewards, next_obs, terminated, next_action_mask=None, discount=None, bc=None):
+    def update(self, obs, actions, rewards, next_obs, terminated, next_action_mask=None, discount=None, bc=None,
+               action_l2=0.0):
         """One TD3 step on a batch; `rewards` come from the caller. Returns detached losses.
 
         `terminated` is 1 only for true terminal states: a time-limit truncation is not one,
@@ -151,7 +152,8 @@ class TD3:
         multiplies the target's next action: 0 where only the zero action exists in s'.
         `discount` (per row, optional; default gamma) is gamma^m where `rewards` sum m steps
         and `next_obs` is the state m steps on (n-step returns). `bc` (optional: states, actions,
-        weight) adds behaviour cloning of those actions to the actor's loss.
+        weight) adds behaviour cloning of those actions to the actor's loss, `action_l2` a quadratic
+        penalty on the actor's own actions.
         """
         discount = self.gamma if discount is None else discount
         with torch.no_grad():
@@ -172,13 +174,20 @@ class TD3:
 
         if self.num_updates % self.policy_delay == 0:
             self.critic.requires_grad_(False)  # the actor's gradient passes through a fixed Q1
-            q = self.critic.q1(obs, self.actor(obs))
+            policy_actions = self.actor(obs)
+            q = self.critic.q1(obs, policy_actions)
             actor_loss = -q.mean()
-            if bc is not None:  # TD3+BC (Fujimoto & Gu 2021): Q over its mean magnitude plus weight x the squared
-                # distance to the given actions (its alpha 2.5 is weight 0.4), whatever the reward's scale
+            # Regularisers are weighed against Q over its mean magnitude, as TD3+BC does (Fujimoto & Gu 2021),
+            # so that a weight means the same whatever the reward's scale
+            regulariser = 0.0
+            if bc is not None:  # TD3+BC: weight x the squared distance to the given actions (alpha 2.5 is 0.4)
                 bc_obs, bc_actions, weight = bc
-                distance = (((self.actor(bc_obs) - bc_actions) / self.actor.action_scale) ** 2).mean()
-                actor_loss = actor_loss / q.abs().mean().detach() + weight * distance
+                regulariser = weight * (((self.actor(bc_obs) - bc_actions) / self.actor.action_scale) ** 2).mean()
+            if action_l2 > 0:  # as OpenAI Baselines' HER (action_l2): against actions pinned at their bounds
+                regulariser = regulariser + action_l2 * ((policy_actions - self.actor.action_bias)
+                                                         / self.actor.action_scale).pow(2).mean()
+            if bc is not None or action_l2 > 0:
+                actor_loss = actor_loss / q.abs().mean().detach() + regulariser
             self.actor_optimizer.zero_grad(set_to_none=True)
             actor_loss.backward()
             self.critic.requires_grad_(True)

@@ -769,7 +769,8 @@ SMOKE = {
     "on-policy-from-promotion": ["--on-policy-disc", "--on-policy-from", "promotion", "--kernels", "torch"],
     "on-policy-from-promotion-no-adaptation": ["--on-policy-disc", "--on-policy-from", "promotion", "--no-adaptation",
                                                "--kernels", "torch"],
-    "anneal": ["--alpha-anneal-steps", "500", "--bc-weight", "0.4"],  # with behaviour cloning of R_E
+    # with both regularisers of the actor's loss
+    "anneal": ["--alpha-anneal-steps", "500", "--bc-weight", "0.4", "--action-l2", "0.1"],
     "no-return-bonus": ["--return-bonus", "0"],
     "return-rank": ["--return-scale", "rank"],
     "dac": ["--algo", "dac"],
@@ -797,13 +798,14 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
     for bonus in (0.0, 2.0):
         torch.manual_seed(0)  # the same batch both times: the bonus draws no extra samples here
         args = argparse.Namespace(batch_size=64, reward="sail", return_bonus=bonus, return_scale="minmax",
-                                  absorbing=False, return_decomposition=0.0, n_step=1, gamma=0.99, bc_weight=0.0)
+                                  absorbing=False, return_decomposition=0.0, n_step=1, gamma=0.99, bc_weight=0.0,
+                                  action_l2=0.0)
         means[bonus] = float(td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args,
                                         return_range=(2.0, 12.0))["reward_mean"])
     assert means[2.0] - means[0.0] == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-5)
     # IRCR (--reward none): the bonus is the whole reward, D plays no part
     args = argparse.Namespace(batch_size=64, reward="none", return_bonus=2.0, return_scale="minmax", absorbing=False,
-                              return_decomposition=0.0, n_step=1, gamma=0.99, bc_weight=0.0)
+                              return_decomposition=0.0, n_step=1, gamma=0.99, bc_weight=0.0, action_l2=0.0)
     ircr = td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
     assert float(ircr["reward_mean"]) == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-6)
     # return decomposition: a reward model that says 0.5 everywhere adds 3 * 0.5 / ((12 - 2) / 40) per step
@@ -820,13 +822,14 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
 
 
 class _QuadraticQ(torch.nn.Module):
-    """Q(s, a) = -|a - best|^2: a critic whose best action is known."""
-    def __init__(self, best):
+    """Q(s, a) = offset - |a - best|^2: a critic whose best action is known."""
+    def __init__(self, best, offset=0.0):
         super().__init__()
         self.best = torch.nn.Parameter(torch.as_tensor(best, dtype=torch.float32))
+        self.offset = offset
 
     def forward(self, obs, action):
-        return -((action - self.best) ** 2).sum(-1)
+        return self.offset - ((action - self.best) ** 2).sum(-1)
 
 
 def test_behaviour_cloning_holds_the_actor_near_the_given_actions_against_q():
@@ -843,6 +846,23 @@ def test_behaviour_cloning_holds_the_actor_near_the_given_actions_against_q():
         final[weight] = agent.actor(obs).mean().item()
     assert final[0.0] > 0.4  # Q alone: its best action
     assert -0.5 < final[10.0] < -0.3  # cloning outweighs Q's pull ten to one, so near -0.5, a little towards 0.5
+
+
+def test_action_penalty_pulls_the_actor_towards_the_middle_of_its_range_against_q():
+    torch.manual_seed(0)
+    obs = torch.randn(64, 3)
+    final = {}
+    for weight in (0.0, 1.0):  # actions in [0, 2], whose middle is 1; Q's best action is 1.5 everywhere
+        agent = TD3(obs_dim=3, act_dim=2, action_low=np.zeros(2), action_high=2 * np.ones(2), hidden=(16, 16),
+                    policy_delay=1, lr=1e-2)
+        # Q about 10, so Q over its mean magnitude changes by 0.1 per unit of (a - 1.5)^2: the penalty (1 per
+        # unit of (a - 1)^2 per dimension) wins
+        agent.critic.q1, agent.critic.q2 = _QuadraticQ([1.5, 1.5], 10.0), _QuadraticQ([1.5, 1.5], 10.0)
+        for _ in range(100):
+            agent.update(obs, torch.ones(64, 2), torch.zeros(64), obs, torch.zeros(64), action_l2=weight)
+        final[weight] = agent.actor(obs).mean().item()
+    assert final[0.0] > 1.4  # Q alone: its best action
+    assert 1.0 < final[1.0] < 1.2  # the penalty outweighs Q's pull: near the middle, not at the bound 0
 
 
 @pytest.mark.parametrize("beta", [0.0, 1.0, 2.0])
@@ -868,12 +888,12 @@ def test_n_step_target_sums_the_discounted_rewards_inside_the_episode_then_boots
         self_buffer.add([i], [0], 0.0, [i + 1], float(i == 9))
     self_buffer.end_episode(0, 7.0)
     seen = {}
-    agent.update = lambda obs, actions, rewards, next_obs, terminated, next_action_mask, discount, bc: \
+    agent.update = lambda obs, actions, rewards, next_obs, terminated, next_action_mask, discount, bc, action_l2: \
         seen.update(obs=obs[:, 0], rewards=rewards, next_obs=next_obs[:, 0], terminated=terminated,
                     discount=discount) or {}
     # --reward none with the return bonus: every step's reward is (7 - 2) / (12 - 2) = 0.5
     args = argparse.Namespace(batch_size=500, reward="none", return_bonus=1.0, return_scale="minmax", absorbing=False,
-                              return_decomposition=0.0, n_step=3, gamma=0.9, bc_weight=0.0)
+                              return_decomposition=0.0, n_step=3, gamma=0.9, bc_weight=0.0, action_l2=0.0)
     td3_update(agent, None, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
     steps = torch.clamp(10 - seen["obs"], max=3)  # m: 3, or fewer before the episode's end
     assert set(steps.tolist()) == {1.0, 2.0, 3.0}
