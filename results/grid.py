@@ -118,7 +118,7 @@ GRIDS = {
     # a quadratic penalty on the actor's actions on top of SAIL's defaults: Ant-v5's actors move faster than its
     # teacher but pay 2.4 times its control cost, which the sparse reward charges only at an episode's end
     "learning-action-l2": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                               {"sail-al2-0.01": ("sail.py", [*OFF_POLICY, "--action-l2", "0.01"])}, [1, 2, 3]),
+                               {"sail-al2-0.03": ("sail.py", [*OFF_POLICY, "--action-l2", "0.03"])}, [1, 2, 3]),
     # pink exploration noise (Eberhard et al. 2023), so that whole episodes differ and the ratchet has better ones to keep
     "learning-pink": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                           {"sail-pink": ("sail.py", [*OFF_POLICY, "--noise-beta", "1"])}, [1, 2, 3]),
