@@ -2,6 +2,7 @@
 
 import copy
 import os
+import re
 import subprocess
 import sys
 
@@ -1194,6 +1195,7 @@ def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     lines = proc.stdout.splitlines()
     episodes = [line for line in lines if line.startswith("episode ")]
     assert len(episodes) == 3 and all("ended early" in line for line in episodes)  # a barely trained hopper falls
+    assert all(re.search(r"\(forward reward -?\d+, control cost \d+\)", line) for line in episodes)
     summary = lines.index(next(line for line in lines if line.startswith("Hopper-v5, actor:")))
     assert "3 ended early" in lines[summary] and lines[summary + 1].startswith("teacher (1 episodes): first entry")
     assert lines[summary + 2].startswith("squared action norm per step: actor ")  # and the control cost it makes
@@ -1202,6 +1204,17 @@ def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     assert lines[summary + 3].startswith("training episodes (R_B") and len(training) == 1
     assert training[0].startswith("  0-50000: ") and int(training[0].split(" ended early")[0].split(", ")[-1]) >= 10
     assert missing.returncode == 2 and "has no config.json" in missing.stderr
+
+
+def test_checkpoint_probe_reports_q_slope_and_d(straight_run):
+    proc = run_script(os.path.join("results", "probe.py"), str(straight_run))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    q_line, *d_lines = proc.stdout.splitlines()
+    mean_q, slope, ratio = map(float, re.search(r"mean \|Q\| (\S+), mean slope per action dimension (\S+), "
+                                                r"their ratio (\S+)$", q_line).groups())
+    assert mean_q > 0 and slope > 0
+    assert ratio == pytest.approx(slope / mean_q, rel=0.05)  # of the printed numbers, rounded
+    assert len(d_lines) == 4 and all(0 <= float(line.rsplit(": ", 1)[1]) <= 1 for line in d_lines)
 
 
 def test_checkpoints_are_read_onto_the_cpu_whatever_the_run_device(tmp_path, monkeypatch):

@@ -4,7 +4,9 @@
 
 RUN_DIR is a sail.py run folder (config.json and checkpoint.pt). Plays --episodes episodes of
 its deterministic actor (--target: its Polyak-averaged target actor) and prints, for each, the
-return, the length and the range of the first observation entry, which on Ant-v5, Hopper-v5 and
+return and two of its dense parts, the forward reward (the distance covered over the step time)
+and the control cost (the squared actions times the env's weight), the length and the range of
+the first observation entry, which on Ant-v5, Hopper-v5 and
 Walker2d-v5 is the torso's height (their observations leave out the x position), and on Ant-v5
 the steps its torso spent upside down (entries 1-4 are the torso's orientation quaternion w, x,
 y, z: the body's up axis points down where 1 - 2(x^2 + y^2) < 0); then the height range over
@@ -51,9 +53,20 @@ agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.actio
 checkpoint = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), {"agent": agent})
 policy = (lambda o: agent.act(o, target=True)) if args.target else agent.act
 
+unwrapped = env.unwrapped
+# the env's control cost per step is its weight times the squared action norm (gymnasium's v5 locomotion envs)
+weight = getattr(unwrapped, "_ctrl_cost_weight", float("nan"))
 returns, early, action_cost = [], 0, []
 for i in range(args.episodes):
-    episode = rollout(env, policy)
+    positions = []  # the body's x position as each action is chosen
+
+    def policy_noting_x(obs):
+        positions.append(float(unwrapped.data.qpos[0]))
+        return policy(obs)
+
+    episode = rollout(env, policy_noting_x)
+    # the dense reward's forward part sums x velocity x its weight: the distance covered over the step time
+    forward = (unwrapped.data.qpos[0] - positions[0]) / unwrapped.dt * getattr(unwrapped, "_forward_reward_weight", 1.0)
     states = np.concatenate([episode["observations"], episode["next_observations"][-1:]])
     if config["absorbing"]:  # DAC's absorbing state (indicator 1) follows an early end: not a body state
         states = states[states[:, -1] == 0.0]
@@ -66,7 +79,8 @@ for i in range(args.episodes):
     if config["env"].startswith("Ant"):
         quaternion = states[:, 1:5]
         ending += f", {int((1 - 2 * (quaternion[:, 1] ** 2 + quaternion[:, 2] ** 2) < 0).sum())} steps upside down"
-    print(f"episode {i + 1}: return {returns[-1]:.1f}, length {len(episode['actions'])}, first entry "
+    print(f"episode {i + 1}: return {returns[-1]:.1f} (forward reward {forward:.0f}, control cost "
+          f"{weight * (episode['actions'] ** 2).sum():.0f}), length {len(episode['actions'])}, first entry "
           f"{height.min():.2f}-{height.max():.2f}, {ending}")
 print(f"{config['env']}, {'target actor' if args.target else 'actor'}: mean return {np.mean(returns):.1f} over "
       f"{args.episodes} episodes, {early} ended early (env seed {args.seed})")
@@ -76,8 +90,6 @@ with np.load(config.get("demos") or default_demo_path(config["env"]), allow_pick
     print(f"teacher ({config['num_demos']} episodes): first entry {first.min():.2f}-{first.max():.2f}, "
           f"lengths {', '.join(str(n) for n in demos['episode_lengths'][:config['num_demos']])}")
     teacher_cost = (demos["actions"][:ends[-1]] ** 2).sum(-1).mean()
-# the env's control cost per step is its weight times the squared action norm (gymnasium's v5 locomotion envs)
-weight = getattr(env.unwrapped, "_ctrl_cost_weight", float("nan"))
 print(f"squared action norm per step: actor {np.mean(action_cost):.3f}, teacher {teacher_cost:.3f}; control cost "
       f"weight {weight}: {weight * np.mean(action_cost) * env.max_episode_steps:.0f} against "
       f"{weight * teacher_cost * env.max_episode_steps:.0f} over {env.max_episode_steps} steps")

@@ -6,7 +6,10 @@ RUN_DIR is a run folder with config.json and checkpoint.pt (the checkpoints stay
 outside the repo). Prints, for an --absorbing run (DAC): D's reward log D - log(1 - D) in the
 absorbing state, and the critic's min(Q1, Q2) there with the zero action and with the actor's
 action, against its mean over the last 20k states of the self buffer (with the actor's action).
-For every run: D's mean output on the recorded teacher episodes of the run's demo file with one
+For every run: the critic's Q1 at the actor's actions over up to 4096 states of the self buffer,
+its mean magnitude, its mean slope |dQ1/da| per action dimension and their ratio, the pull per
+unit on each action dimension of an actor's loss that divides Q by its magnitude (--bc-weight,
+--action-l2); and D's mean output on the recorded teacher episodes of the run's demo file with one
 observation (by default 8, the forward velocity of HalfCheetah-v5) scaled by 0.75 to 1.5.
 """
 
@@ -34,18 +37,25 @@ for name in ("config.json", "checkpoint.pt"):
     if not os.path.isfile(os.path.join(args.run_dir, name)):
         p.error(f"{args.run_dir} has no {name}: give a run folder made by sail.py")
 config = json.load(open(os.path.join(args.run_dir, "config.json")))
-state = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), map_location="cpu")
+state = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"))
 self_obs = state["self_buffer"]["data"][0]
 obs_dim, act_dim = self_obs.shape[1], state["self_buffer"]["data"][1].shape[1]
 disc = Discriminator(obs_dim, act_dim, config["disc_hidden"])
 disc.load_state_dict(state["disc"])
+critic = TwinCritic(obs_dim, act_dim, config["hidden"], config.get("critic_layer_norm", False))
+critic.load_state_dict(state["agent"]["critic"])
+actor = Actor(obs_dim, act_dim, config["hidden"], -np.ones(act_dim), np.ones(act_dim))
+actor.load_state_dict(state["agent"]["actor"])  # its buffers hold the env's action bounds
+sample = self_obs[torch.randperm(len(self_obs), generator=torch.Generator().manual_seed(0))[:4096]]
+policy_actions = actor(sample).detach().requires_grad_(True)
+q = critic.q1(sample, policy_actions)
+slope, = torch.autograd.grad(q.sum(), policy_actions)
+slope = (slope * actor.action_scale).abs().mean().item()  # per unit of half the action range, as the penalties
+print(f"Q1 at the actor's actions ({len(sample)} states of R_B): mean |Q| {q.abs().mean().item():.1f}, mean slope "
+      f"per action dimension {slope:.3f}, their ratio {slope / q.abs().mean().item():.4f}")
 torch.set_grad_enabled(False)
 
 if config["absorbing"]:
-    critic = TwinCritic(obs_dim, act_dim, config["hidden"], config.get("critic_layer_norm", False))
-    critic.load_state_dict(state["agent"]["critic"])
-    actor = Actor(obs_dim, act_dim, config["hidden"], -np.ones(act_dim), np.ones(act_dim))
-    actor.load_state_dict(state["agent"]["actor"])  # its buffers hold the env's action bounds
     absorbing = torch.as_tensor(absorbing_state(obs_dim - 1))[None]
     zero = torch.zeros(1, act_dim)
     recent = self_obs[-20_000:]
