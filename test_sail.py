@@ -1214,7 +1214,9 @@ def test_checkpoint_probe_reports_q_slope_and_d(straight_run):
                                                 r"their ratio (\S+)$", q_line).groups())
     assert mean_q > 0 and slope > 0
     assert ratio == pytest.approx(slope / mean_q, rel=0.05)  # of the printed numbers, rounded
-    assert len(d_lines) == 4 and all(0 <= float(line.rsplit(": ", 1)[1]) <= 1 for line in d_lines)
+    assert len(d_lines) == 9 and all(0 <= float(line.rsplit(": ", 1)[1]) <= 1 for line in d_lines)
+    assert [line.split(": ")[0] for line in d_lines[4:]] == [f"D on the teacher's states, actions x {k}"
+                                                           for k in (0.0, 0.5, 1.0, 1.5, 2.0)]
 
 
 def test_checkpoints_are_read_onto_the_cpu_whatever_the_run_device(tmp_path, monkeypatch):

@@ -10,7 +10,9 @@ For every run: the critic's Q1 at the actor's actions over up to 4096 states of 
 its mean magnitude, its mean slope |dQ1/da| per action dimension and their ratio, the pull per
 unit on each action dimension of an actor's loss that divides Q by its magnitude (--bc-weight,
 --action-l2); and D's mean output on the recorded teacher episodes of the run's demo file with one
-observation (by default 8, the forward velocity of HalfCheetah-v5) scaled by 0.75 to 1.5.
+observation (by default 8, the forward velocity of HalfCheetah-v5) scaled by 0.75 to 1.5, then
+with the teacher's actions scaled by 0 to 2 (clipped to the action bounds): how much D's reward
+depends on the action at all.
 """
 
 import argparse
@@ -79,3 +81,8 @@ for scale in (0.75, 1.0, 1.25, 1.5):
     scaled[:, args.velocity_index] *= scale
     print(f"D on the teacher's state-actions, observation {args.velocity_index} x {scale}: "
           f"{torch.sigmoid(disc(disc.inputs(scaled, actions))).mean().item():.2f}")
+low, high = actor.action_bias - actor.action_scale, actor.action_bias + actor.action_scale
+for scale in (0.0, 0.5, 1.0, 1.5, 2.0):
+    scaled = (actor.action_bias + scale * (actions - actor.action_bias)).clamp(low, high)
+    d = torch.sigmoid(disc(disc.inputs(obs, scaled))).mean().item()
+    print(f"D on the teacher's states, actions x {scale}: {d:.3f}")
