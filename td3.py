@@ -183,7 +183,7 @@ class TD3:
             if bc is not None:  # TD3+BC: weight x the squared distance to the given actions (alpha 2.5 is 0.4)
                 bc_obs, bc_actions, weight = bc
                 regulariser = weight * (((self.actor(bc_obs) - bc_actions) / self.actor.action_scale) ** 2).mean()
-            if action_l2 > 0:  # as OpenAI Baselines' HER (action_l2): against actions pinned at their bounds
+            if action_l2 > 0:  # as action_l2 in OpenAI Baselines' HER: a prior for small actions (control cost)
                 regulariser = regulariser + action_l2 * ((policy_actions - self.actor.action_bias)
                                                          / self.actor.action_scale).pow(2).mean()
             if bc is not None or action_l2 > 0:

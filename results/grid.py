@@ -115,8 +115,8 @@ GRIDS = {
     # behaviour cloning of R_E in TD3+BC's form on top of SAIL's defaults, at TD3+BC's weight
     "learning-bc": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                         {"sail-bc0.4": ("sail.py", [*OFF_POLICY, "--bc-weight", "0.4"])}, [1, 2, 3]),
-    # a quadratic penalty on the actor's actions on top of SAIL's defaults: Ant-v5's actors move faster than its
-    # teacher but pay 2.4 times its control cost, which the sparse reward charges only at an episode's end
+    # a quadratic penalty on the actor's actions on top of SAIL's defaults: Ant-v5's actors run about 1.3 times as
+    # far as its teacher but pay 1.8 times its control cost, which the sparse reward charges only at an episode's end
     "learning-action-l2": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                                {"sail-al2-0.03": ("sail.py", [*OFF_POLICY, "--action-l2", "0.03"])}, [1, 2, 3]),
     # pink exploration noise (Eberhard et al. 2023), so that whole episodes differ and the ratchet has better ones to keep
