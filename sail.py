@@ -83,7 +83,7 @@ RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
 PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
              "decomposition_unit": "range", "n_step": 1, "utd": 1,
-             "bc_weight": 0.0, "action_l2": 0.0, "noise_beta": 0.0, "contact_forces": True, "on_policy_from": "start"}
+             "bc_weight": 0.0, "action_l2": 0.0, "action_budget": "none", "noise_beta": 0.0, "contact_forces": True, "on_policy_from": "start"}
 
 
 def parse_args(argv=None):
@@ -146,6 +146,10 @@ def parse_args(argv=None):
     g.add_argument("--action-l2", type=non_negative_float, default=0.0, help="quadratic penalty on the actor's "
                    "actions (per dimension, in units of half the action range) in its loss, weighed against Q over "
                    "its mean magnitude as --bc-weight is; 0: off")
+    g.add_argument("--action-budget", choices=["none", "teacher"], default="none", help="what --action-l2 leaves "
+                   "free: none, every action is penalised; teacher, only the batch's mean squared action above the "
+                   "teacher's (R_E's demos, per step and dimension) is, so the actor may spend as much control as "
+                   "its teacher but no more")
     g.add_argument("--update-every", type=positive_int, default=1,
                    help="env steps between groups of as many TD3 updates (authors: 1000)")
     g.add_argument("--utd", type=positive_int, default=1, help="update-to-data ratio: TD3 updates (and "
@@ -228,6 +232,9 @@ def check_args(p, args):
         p.error(f"--on-policy-from {args.on_policy_from} goes with --on-policy-disc")
     if args.bc_weight > 0 and args.reward not in ("sail", "airl"):
         p.error(f"--bc-weight clones R_E's actions: --reward {args.reward} learns without demos")
+    if args.action_budget != "none" and not (args.action_l2 > 0 and args.reward in ("sail", "airl")):
+        p.error(f"--action-budget {args.action_budget} is what --action-l2 leaves free: it needs --action-l2 > 0 "
+                "and demos (not --reward env or none)")
     if args.return_decomposition > 0 and args.decomposition_subset > args.batch_size:
         p.error(f"--decomposition-subset {args.decomposition_subset} is more than --batch-size {args.batch_size}")
     if args.buffer_size < 1001:
@@ -380,8 +387,15 @@ def decomposition_unit(kind, return_range, rate_range, episode_steps):
     return max(return_range[1] - return_range[0], 1e-8) / episode_steps
 
 
+def teacher_action_budget(teacher_buffer, actor):
+    """The demos' mean squared action per step and dimension, in units of half the action range
+    (--action-budget teacher; computed once, before any promotion replaces a demo)."""
+    actions = torch.cat([data[1] for _, data in teacher_buffer.episodes]).to(actor.action_bias.device)
+    return float(((actions - actor.action_bias) / actor.action_scale).pow(2).mean())
+
+
 def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_range=None, sorted_returns=None,
-               reward_model=None, decomposition_unit=1.0):
+               reward_model=None, decomposition_unit=1.0, action_budget=0.0):
     """Eqs. (7) and (8): one TD3 step on a batch from alpha R_E + (1 - alpha) R_B, rewarded by D."""
     batch, env_rewards, mask, episode_returns = mixed_batch(teacher_buffer, self_buffer, args.batch_size, alpha,
                                                             with_returns=args.return_bonus > 0, n_step=args.n_step)
@@ -424,7 +438,8 @@ def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_ran
         teacher_obs, teacher_actions = (x.to(agent.device) for x in teacher_buffer.sample(args.batch_size)[:2])
         bc = (teacher_obs, teacher_actions, args.bc_weight)
     losses = agent.update(obs[:, 0], actions[:, 0], n_step_return, next_obs, terminated, next_action_mask,
-                          discount=args.gamma ** (last + 1.0), bc=bc, action_l2=args.action_l2)
+                          discount=args.gamma ** (last + 1.0), bc=bc, action_l2=args.action_l2,
+                          action_budget=action_budget)
     return losses | {"reward_mean": rewards[:, 0].mean()}
 
 
@@ -444,6 +459,7 @@ class LoopState:
     train_episodic_return: float = float("nan")
     return_range: tuple = (float("inf"), -float("inf"))  # lowest and highest episodic returns seen (R_E's too)
     rate_range: tuple = (float("inf"), -float("inf"))    # the same for return / length (--decomposition-unit rate)
+    action_budget: float = 0.0          # the teacher's mean squared action (--action-budget teacher), else 0
     train_time: float = 0.0             # seconds of training (evaluations excluded)
     rows: list = dataclasses.field(default_factory=list)  # progress.csv
 
@@ -499,6 +515,8 @@ def train(args):
                 s.return_range = (min(teacher_buffer.returns), max(teacher_buffer.returns))
                 rates = [ret / len(data[0]) for ret, data in teacher_buffer.episodes]
                 s.rate_range = (min(rates), max(rates))
+            if args.action_budget == "teacher":
+                s.action_budget = teacher_action_budget(teacher_buffer, agent.actor)
             obs, _ = env.reset()
             episode_noise = None
             stats = {}  # the latest losses, logged at each evaluation
@@ -599,7 +617,8 @@ def train(args):
                         if reward_model is not None:
                             stats.update(train_reward_model(reward_model, reward_optimizer, self_buffer, args))
                         stats.update(td3_update(agent, disc, teacher_buffer, self_buffer, s.alpha, args,
-                                                s.return_range, sorted_returns, reward_model, unit))
+                                                s.return_range, sorted_returns, reward_model, unit,
+                                                s.action_budget))
                     bad = {k: float(v) for k, v in stats.items() if not math.isfinite(float(v))}
                     if bad:  # stop before a diverged actor acts in the env; the last checkpoint stays good
                         bar.close()

@@ -144,7 +144,7 @@ class TD3:
         return np.clip(self.act(obs) + noise, low, high).astype(np.float32)
 
     def update(self, obs, actions, rewards, next_obs, terminated, next_action_mask=None, discount=None, bc=None,
-               action_l2=0.0):
+               action_l2=0.0, action_budget=0.0):
         """One TD3 step on a batch; `rewards` come from the caller. Returns detached losses.
 
         `terminated` is 1 only for true terminal states: a time-limit truncation is not one,
@@ -153,7 +153,8 @@ class TD3:
         `discount` (per row, optional; default gamma) is gamma^m where `rewards` sum m steps
         and `next_obs` is the state m steps on (n-step returns). `bc` (optional: states, actions,
         weight) adds behaviour cloning of those actions to the actor's loss, `action_l2` a quadratic
-        penalty on the actor's own actions.
+        penalty on the actor's own actions: on the part of the batch's mean squared action (per
+        dimension, in units of half the range) above `action_budget`, all of it at 0.
         """
         discount = self.gamma if discount is None else discount
         with torch.no_grad():
@@ -184,8 +185,8 @@ class TD3:
                 bc_obs, bc_actions, weight = bc
                 regulariser = weight * (((self.actor(bc_obs) - bc_actions) / self.actor.action_scale) ** 2).mean()
             if action_l2 > 0:  # as action_l2 in OpenAI Baselines' HER: a prior for small actions (control cost)
-                regulariser = regulariser + action_l2 * ((policy_actions - self.actor.action_bias)
-                                                         / self.actor.action_scale).pow(2).mean()
+                squared = ((policy_actions - self.actor.action_bias) / self.actor.action_scale).pow(2).mean()
+                regulariser = regulariser + action_l2 * F.relu(squared - action_budget)
             if bc is not None or action_l2 > 0:
                 actor_loss = actor_loss / q.abs().mean().detach() + regulariser
             self.actor_optimizer.zero_grad(set_to_none=True)

@@ -771,7 +771,7 @@ SMOKE = {
     "on-policy-from-promotion-no-adaptation": ["--on-policy-disc", "--on-policy-from", "promotion", "--no-adaptation",
                                                "--kernels", "torch"],
     # with both regularisers of the actor's loss
-    "anneal": ["--alpha-anneal-steps", "500", "--bc-weight", "0.4", "--action-l2", "0.1"],
+    "anneal": ["--alpha-anneal-steps", "500", "--bc-weight", "0.4", "--action-l2", "0.1", "--action-budget", "teacher"],
     "no-return-bonus": ["--return-bonus", "0"],
     "return-rank": ["--return-scale", "rank"],
     "dac": ["--algo", "dac"],
@@ -866,6 +866,33 @@ def test_action_penalty_pulls_the_actor_towards_the_middle_of_its_range_against_
     assert 1.0 < final[1.0] < 1.2  # the penalty outweighs Q's pull: near the middle, not at the bound 0
 
 
+@pytest.mark.parametrize("budget, low, high", [(0.3, 1.4, 2.0), (0.09, 1.2, 1.4)])
+def test_action_budget_leaves_the_actions_free_up_to_it(budget, low, high):
+    """Q's best action 1.5 in [0, 2] is 0.5 half-ranges from the middle, a squared action of 0.25:
+    under a budget of 0.3 the penalty never acts; under 0.09 it holds the actor near 0.3
+    half-ranges (a about 1.25; without a budget near the middle, 1.0-1.2: the test above)."""
+    torch.manual_seed(0)
+    obs = torch.randn(64, 3)
+    agent = TD3(obs_dim=3, act_dim=2, action_low=np.zeros(2), action_high=2 * np.ones(2), hidden=(16, 16),
+                policy_delay=1, lr=1e-2)
+    agent.critic.q1, agent.critic.q2 = _QuadraticQ([1.5, 1.5], 10.0), _QuadraticQ([1.5, 1.5], 10.0)
+    for _ in range(100):
+        agent.update(obs, torch.ones(64, 2), torch.zeros(64), obs, torch.zeros(64), action_l2=1.0,
+                     action_budget=budget)
+    assert low < agent.actor(obs).mean().item() < high
+
+
+def test_teacher_action_budget_is_the_demos_mean_squared_action_in_half_ranges():
+    from sail import teacher_action_budget
+    actor = TD3(obs_dim=1, act_dim=2, action_low=np.array([0.0, -2.0]), action_high=np.array([2.0, 2.0]),
+                hidden=(4,)).actor
+    teacher_buffer = TeacherBuffer(100)
+    # half-ranges 1 and 2 around 1 and 0: (0.5^2 + 0.5^2) and (1^2 + 0^2), mean over steps and dimensions 0.375
+    teacher_buffer.add_episode(1.0, np.zeros((2, 1)), np.array([[1.5, 1.0], [2.0, 0.0]]), np.zeros((2, 1)),
+                               np.zeros(2))
+    assert teacher_action_budget(teacher_buffer, actor) == pytest.approx(0.375)
+
+
 @pytest.mark.parametrize("beta", [0.0, 1.0, 2.0])
 def test_colored_noise_has_unit_variance_and_more_slow_drift_as_beta_grows(beta):
     rng = np.random.default_rng(0)
@@ -889,7 +916,7 @@ def test_n_step_target_sums_the_discounted_rewards_inside_the_episode_then_boots
         self_buffer.add([i], [0], 0.0, [i + 1], float(i == 9))
     self_buffer.end_episode(0, 7.0)
     seen = {}
-    agent.update = lambda obs, actions, rewards, next_obs, terminated, next_action_mask, discount, bc, action_l2: \
+    agent.update = lambda obs, actions, rewards, next_obs, terminated, next_action_mask, discount, bc, **_: \
         seen.update(obs=obs[:, 0], rewards=rewards, next_obs=next_obs[:, 0], terminated=terminated,
                     discount=discount) or {}
     # --reward none with the return bonus: every step's reward is (7 - 2) / (12 - 2) = 0.5
@@ -1333,6 +1360,7 @@ def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos, caps
                  ["--hidden", "0", *out],
                  ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--no-contact-forces", *out],
                  ["--eval-freq", "5000", "--total-timesteps", "1000", *out],
+                 ["--action-budget", "teacher", *out],  # without --action-l2: nothing to leave free
                  ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--output-dir", str(blocker / "runs")]):
         assert_one_line_error(main_in_process(sail.main, argv, capsys))
     assert not os.path.exists(tmp_path / "runs")  # nothing was started

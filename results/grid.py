@@ -151,6 +151,13 @@ GRIDS = {
         {"sail-ln-onpolicy-promotion-rrd1-rate-al2-0.03": ("sail.py", [
             *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate",
             "--action-l2", "0.03"])}, [1, 2, 3]),
+    # the same with the penalty only on control beyond the teacher's: on HalfCheetah-v5 (seed 1) the penalty on all
+    # of the actions held the actor at a third of the teacher's squared action and the run at its teacher's return
+    "learning-budget": grid(
+        ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+        {"sail-ln-onpolicy-promotion-rrd1-rate-al2-0.03-budget": ("sail.py", [
+            *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate",
+            "--action-l2", "0.03", "--action-budget", "teacher"])}, [1, 2, 3]),
     # Ant-v5 without its 78 contact forces in the observation (27 entries, Ant-v4's default; the paper's Ant-v2
     # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
     "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*OFF_POLICY, "--no-contact-forces"])},
