@@ -147,9 +147,9 @@ def parse_args(argv=None):
                    "actions (per dimension, in units of half the action range) in its loss, weighed against Q over "
                    "its mean magnitude as --bc-weight is; 0: off")
     g.add_argument("--action-budget", choices=["none", "teacher"], default="none", help="what --action-l2 leaves "
-                   "free: none, every action is penalised; teacher, only the batch's mean squared action above the "
-                   "teacher's (R_E's demos, per step and dimension) is, so the actor may spend as much control as "
-                   "its teacher but no more")
+                   "free: none, every action is penalised; teacher, only the batch's mean squared action above R_E's "
+                   "(per step and dimension: the demos', then that of the best episodes that replace them), so the "
+                   "actor may spend as much control as the best episodes seen but no more")
     g.add_argument("--update-every", type=positive_int, default=1,
                    help="env steps between groups of as many TD3 updates (authors: 1000)")
     g.add_argument("--utd", type=positive_int, default=1, help="update-to-data ratio: TD3 updates (and "
@@ -388,8 +388,9 @@ def decomposition_unit(kind, return_range, rate_range, episode_steps):
 
 
 def teacher_action_budget(teacher_buffer, actor):
-    """The demos' mean squared action per step and dimension, in units of half the action range
-    (--action-budget teacher; computed once, before any promotion replaces a demo)."""
+    """R_E's mean squared action per step and dimension, in units of half the action range
+    (--action-budget teacher; again after each promotion, so that the budget grows only with
+    episodes whose return paid for their control)."""
     actions = torch.cat([data[1] for _, data in teacher_buffer.episodes]).to(actor.action_bias.device)
     return float(((actions - actor.action_bias) / actor.action_scale).pow(2).mean())
 
@@ -459,7 +460,7 @@ class LoopState:
     train_episodic_return: float = float("nan")
     return_range: tuple = (float("inf"), -float("inf"))  # lowest and highest episodic returns seen (R_E's too)
     rate_range: tuple = (float("inf"), -float("inf"))    # the same for return / length (--decomposition-unit rate)
-    action_budget: float = 0.0          # the teacher's mean squared action (--action-budget teacher), else 0
+    action_budget: float = 0.0          # R_E's mean squared action (--action-budget teacher), else 0
     train_time: float = 0.0             # seconds of training (evaluations excluded)
     rows: list = dataclasses.field(default_factory=list)  # progress.csv
 
@@ -591,6 +592,8 @@ def train(args):
                     episode = self_buffer.latest((self_buffer.ptr - s.episode_start) % args.buffer_size)
                     if teacher_buffer.promote(s.train_episodic_return, *episode):
                         s.promotions += 1
+                        if args.action_budget == "teacher":
+                            s.action_budget = teacher_action_budget(teacher_buffer, agent.actor)
                         if s.first_promotion_step is None:
                             s.first_promotion_step = s.global_step
                 obs, _ = env.reset()

@@ -882,7 +882,7 @@ def test_action_budget_leaves_the_actions_free_up_to_it(budget, low, high):
     assert low < agent.actor(obs).mean().item() < high
 
 
-def test_teacher_action_budget_is_the_demos_mean_squared_action_in_half_ranges():
+def test_teacher_action_budget_is_r_e_s_mean_squared_action_in_half_ranges():
     from sail import teacher_action_budget
     actor = TD3(obs_dim=1, act_dim=2, action_low=np.array([0.0, -2.0]), action_high=np.array([2.0, 2.0]),
                 hidden=(4,)).actor
@@ -891,6 +891,13 @@ def test_teacher_action_budget_is_the_demos_mean_squared_action_in_half_ranges()
     teacher_buffer.add_episode(1.0, np.zeros((2, 1)), np.array([[1.5, 1.0], [2.0, 0.0]]), np.zeros((2, 1)),
                                np.zeros(2))
     assert teacher_action_budget(teacher_buffer, actor) == pytest.approx(0.375)
+    # a promoted episode of smaller actions (squared 0.25 and 0) replaces the demo: the budget follows R_E
+    teacher_buffer = TeacherBuffer(2)
+    teacher_buffer.add_episode(1.0, np.zeros((2, 1)), np.array([[1.5, 1.0], [2.0, 0.0]]), np.zeros((2, 1)),
+                               np.zeros(2))
+    assert teacher_buffer.promote(2.0, np.zeros((2, 1)), np.array([[1.5, 0.0], [1.0, 0.0]]), np.zeros((2, 1)),
+                                  np.zeros(2))
+    assert teacher_action_budget(teacher_buffer, actor) == pytest.approx(0.0625)
 
 
 @pytest.mark.parametrize("beta", [0.0, 1.0, 2.0])

@@ -151,8 +151,9 @@ GRIDS = {
         {"sail-ln-onpolicy-promotion-rrd1-rate-al2-0.03": ("sail.py", [
             *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate",
             "--action-l2", "0.03"])}, [1, 2, 3]),
-    # the same with the penalty only on control beyond the teacher's: on HalfCheetah-v5 (seed 1) the penalty on all
-    # of the actions held the actor at a third of the teacher's squared action and the run at its teacher's return
+    # the same with the penalty only on control beyond R_E's: on HalfCheetah-v5 (seed 1) the penalty on all of the
+    # actions held the actor at a third of the teacher's squared action and the run at its teacher's return, and
+    # Swimmer-v5's best learner spends 2.6 times its teacher's
     "learning-budget": grid(
         ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
         {"sail-ln-onpolicy-promotion-rrd1-rate-al2-0.03-budget": ("sail.py", [
