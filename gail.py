@@ -271,7 +271,8 @@ def train(args):
                     if len(idx) < args.disc_batch_size:
                         continue
                     t_obs, t_act, _, _ = teacher_buffer.sample(len(idx))
-                    disc.obs_norm.update(torch.cat([t_obs, batch["obs"][idx]]))
+                    disc.update_norms(torch.cat([t_obs, batch["obs"][idx]]),
+                                      torch.cat([t_act, batch["env_actions"][idx]]))
                     loss, d_teacher, d_self = discriminator_loss(disc, t_obs, t_act, batch["obs"][idx],
                                                                  batch["env_actions"][idx], args.entropy_coef,
                                                                  args.grad_penalty)

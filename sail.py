@@ -83,7 +83,8 @@ RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
 PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
              "decomposition_unit": "range", "n_step": 1, "utd": 1,
-             "bc_weight": 0.0, "action_l2": 0.0, "action_budget": "none", "noise_beta": 0.0, "contact_forces": True, "on_policy_from": "start"}
+             "bc_weight": 0.0, "action_l2": 0.0, "action_budget": "none", "disc_action_norm": False, "noise_beta": 0.0,
+             "contact_forces": True, "on_policy_from": "start"}
 
 
 def parse_args(argv=None):
@@ -187,6 +188,9 @@ def parse_args(argv=None):
     g.add_argument("--disc-batch-size", type=positive_int, default=256, help="teacher and self samples per minibatch")
     g.add_argument("--grad-penalty", type=non_negative_float, default=10.0, help="gradient penalty weight")
     g.add_argument("--entropy-coef", type=non_negative_float, default=0.01, help="Bernoulli entropy bonus weight")
+    g.add_argument("--disc-action-norm", action="store_true", help="normalise D's actions as its states, by their "
+                   "running mean and variance (default: the actions as they are, which D, under the gradient "
+                   "penalty, hardly looks at)")
 
     g = p.add_argument_group("SAIL and its ablations")
     g.add_argument("--alpha", type=float, default=0.5, help="initial share of teacher samples in batches")
@@ -276,15 +280,24 @@ class RunningNorm(nn.Module):
 
 
 class Discriminator(nn.Module):
-    """D(s, a) = sigmoid(logit(s, a)): teacher buffer -> 1, self buffer -> 0, on normalised s."""
+    """D(s, a) = sigmoid(logit(s, a)): teacher buffer -> 1, self buffer -> 0, on normalised s (and,
+    with `action_norm`, normalised a)."""
 
-    def __init__(self, obs_dim, act_dim, hidden):
+    def __init__(self, obs_dim, act_dim, hidden, action_norm=False):
         super().__init__()
         self.net = mlp([obs_dim + act_dim, *hidden, 1], nn.Tanh)
         self.obs_norm = RunningNorm(obs_dim)  # updated with the data D is trained on
+        # Actions as they are sit beside states of unit variance, and under the gradient penalty D then
+        # hardly looks at them (results/probe.py); on the same scale they weigh as much as the states
+        self.act_norm = RunningNorm(act_dim) if action_norm else None
 
     def inputs(self, obs, actions):
-        return torch.cat([self.obs_norm(obs), actions], dim=-1)
+        return torch.cat([self.obs_norm(obs), actions if self.act_norm is None else self.act_norm(actions)], dim=-1)
+
+    def update_norms(self, obs, actions):
+        self.obs_norm.update(obs)
+        if self.act_norm is not None:
+            self.act_norm.update(actions)
 
     def forward(self, x):
         """Logit of D for normalised inputs x = inputs(obs, actions)."""
@@ -327,7 +340,7 @@ def train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args,
         else:
             b_obs, b_act, *_ = self_buffer.sample(args.disc_batch_size)
         t_obs, t_act, b_obs, b_act = (x.to(device) for x in (t_obs, t_act, b_obs, b_act))
-        disc.obs_norm.update(torch.cat([t_obs, b_obs]))
+        disc.update_norms(torch.cat([t_obs, b_obs]), torch.cat([t_act, b_act]))
         loss, d_teacher, d_self = discriminator_loss(disc, t_obs, t_act, b_obs, b_act,
                                                      args.entropy_coef, args.grad_penalty)
         disc_optimizer.zero_grad(set_to_none=True)
@@ -488,7 +501,7 @@ def train(args):
                 gamma=args.gamma, tau=args.tau, policy_noise=args.policy_noise, noise_clip=args.noise_clip,
                 policy_delay=args.policy_delay, device=device, critic_layer_norm=args.critic_layer_norm)
     self_buffer = ReplayBuffer(obs_dim, act_dim, args.buffer_size)
-    disc = Discriminator(obs_dim, act_dim, args.disc_hidden).to(device)
+    disc = Discriminator(obs_dim, act_dim, args.disc_hidden, args.disc_action_norm).to(device)
     disc_optimizer = make_adam(disc.parameters(), args.disc_lr)
     # what a checkpoint holds besides the loop's state: each part has state_dict / load_state_dict
     parts = {"agent": agent, "disc": disc, "disc_optimizer": disc_optimizer, "self_buffer": self_buffer,

@@ -159,6 +159,14 @@ GRIDS = {
         {"sail-ln-onpolicy-promotion-rrd1-rate-al2-0.03-budget": ("sail.py", [
             *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate",
             "--action-l2", "0.03", "--action-budget", "teacher"])}, [1, 2, 3]),
+    # the triple with D's actions normalised as its states: D's output hardly changed with the actions (Ant-v5:
+    # 0.759-0.768 for the teacher's actions scaled 0-2x), so nothing in the reward told the actor what its
+    # control costs; an action penalty did, but held back the envs whose better gaits spend more
+    "learning-disc-action-norm": grid(
+        ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+        {"sail-ln-onpolicy-promotion-rrd1-rate-dan": ("sail.py", [
+            *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate",
+            "--disc-action-norm"])}, [1, 2, 3]),
     # Ant-v5 without its 78 contact forces in the observation (27 entries, Ant-v4's default; the paper's Ant-v2
     # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
     "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*OFF_POLICY, "--no-contact-forces"])},

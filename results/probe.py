@@ -42,7 +42,7 @@ config = json.load(open(os.path.join(args.run_dir, "config.json")))
 state = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"))
 self_obs = state["self_buffer"]["data"][0]
 obs_dim, act_dim = self_obs.shape[1], state["self_buffer"]["data"][1].shape[1]
-disc = Discriminator(obs_dim, act_dim, config["disc_hidden"])
+disc = Discriminator(obs_dim, act_dim, config["disc_hidden"], config.get("disc_action_norm", False))
 disc.load_state_dict(state["disc"])
 critic = TwinCritic(obs_dim, act_dim, config["hidden"], config.get("critic_layer_norm", False))
 critic.load_state_dict(state["agent"]["critic"])
