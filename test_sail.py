@@ -791,12 +791,12 @@ SMOKE = {
     "no-adaptation": ["--no-adaptation", "--kernels", "torch"],
     "on-policy-disc": ["--on-policy-disc", "--kernels", "torch"],
     # D's negatives from the whole R_B until the first promotion (never, without adaptation), then recent ones
-    "on-policy-from-promotion": ["--on-policy-disc", "--on-policy-from", "promotion", "--kernels", "torch",
-                                 "--disc-action-norm"],
+    "on-policy-from-promotion": ["--on-policy-disc", "--on-policy-from", "promotion", "--kernels", "torch"],
     "on-policy-from-promotion-no-adaptation": ["--on-policy-disc", "--on-policy-from", "promotion", "--no-adaptation",
                                                "--kernels", "torch"],
-    # with both regularisers of the actor's loss
-    "anneal": ["--alpha-anneal-steps", "500", "--bc-weight", "0.4", "--action-l2", "0.1", "--action-budget", "teacher"],
+    # with both regularisers of the actor's loss, and D on normalised actions
+    "anneal": ["--alpha-anneal-steps", "500", "--bc-weight", "0.4", "--action-l2", "0.1", "--action-budget", "teacher",
+               "--disc-action-norm"],
     "no-return-bonus": ["--return-bonus", "0"],
     "return-rank": ["--return-scale", "rank"],
     "dac": ["--algo", "dac"],
