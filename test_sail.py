@@ -743,23 +743,29 @@ def test_sail_reward_is_softplus_of_the_logit_without_overflow():
     assert torch.isfinite(reward).all() and (reward > 900).all()
 
 
+def _train_discriminator(disc, teacher, agent, steps):
+    """`steps` minibatches of Eq. (4) on samplers n -> (obs, actions); returns the last D means."""
+    optimizer = torch.optim.Adam(disc.parameters(), lr=1e-3)
+    for _ in range(steps):
+        (t_obs, t_act), (b_obs, b_act) = teacher(128), agent(128)
+        disc.update_norms(torch.cat([t_obs, b_obs]), torch.cat([t_act, b_act]))
+        loss, d_teacher, d_self = discriminator_loss(disc, t_obs, t_act, b_obs, b_act, 0.01, 10.0)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    return d_teacher, d_self
+
+
 def test_disc_action_norm_lets_d_tell_teacher_from_agent_by_the_size_of_their_actions():
     """States alike, the agent's actions 0.1 larger than the teacher's (std 0.05 each): under the gradient
     penalty, D on the actions as they are stays at 0.5 for both; on normalised actions it separates them."""
+    teacher = lambda n: (torch.randn(n, 4), torch.randn(n, 2) * 0.05 + 0.1)  # noqa: E731
+    agent = lambda n: (torch.randn(n, 4), torch.randn(n, 2) * 0.05 + 0.2)  # noqa: E731
     gaps = {}
     for action_norm in (False, True):
         torch.manual_seed(0)
         disc = Discriminator(obs_dim=4, act_dim=2, hidden=[32, 32], action_norm=action_norm)
-        optimizer = torch.optim.Adam(disc.parameters(), lr=1e-3)
-        teacher = lambda n: (torch.randn(n, 4), torch.randn(n, 2) * 0.05 + 0.1)  # noqa: E731
-        agent = lambda n: (torch.randn(n, 4), torch.randn(n, 2) * 0.05 + 0.2)  # noqa: E731
-        for _ in range(500):
-            (t_obs, t_act), (b_obs, b_act) = teacher(128), agent(128)
-            disc.update_norms(torch.cat([t_obs, b_obs]), torch.cat([t_act, b_act]))
-            loss, _, _ = discriminator_loss(disc, t_obs, t_act, b_obs, b_act, 0.01, 10.0)
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
+        _train_discriminator(disc, teacher, agent, 500)
         with torch.no_grad():
             d = [torch.sigmoid(disc(disc.inputs(*sample(2000)))).mean().item() for sample in (teacher, agent)]
         gaps[action_norm] = d[0] - d[1]
@@ -770,16 +776,9 @@ def test_disc_action_norm_lets_d_tell_teacher_from_agent_by_the_size_of_their_ac
 def test_discriminator_rewards_teacher_data_more_after_training():
     torch.manual_seed(0)
     disc = Discriminator(obs_dim=4, act_dim=2, hidden=[32, 32])
-    optimizer = torch.optim.Adam(disc.parameters(), lr=1e-3)
     teacher = lambda n: (torch.randn(n, 4) + 2.0, torch.rand(n, 2) * 0.5 + 0.5)  # noqa: E731
     agent = lambda n: (torch.randn(n, 4) - 2.0, torch.rand(n, 2) * 0.5 - 1.0)  # noqa: E731
-    for _ in range(200):
-        (t_obs, t_act), (b_obs, b_act) = teacher(128), agent(128)
-        disc.update_norms(torch.cat([t_obs, b_obs]), torch.cat([t_act, b_act]))
-        loss, d_teacher, d_self = discriminator_loss(disc, t_obs, t_act, b_obs, b_act, 0.01, 10.0)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+    d_teacher, d_self = _train_discriminator(disc, teacher, agent, 200)
     assert d_teacher > 0.7 and d_self < 0.3
     assert shaped_reward(disc, *teacher(500), "sail").mean() > 3 * shaped_reward(disc, *agent(500), "sail").mean()
 
