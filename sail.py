@@ -405,7 +405,7 @@ def teacher_action_budget(teacher_buffer, actor):
     (--action-budget teacher; again after each promotion, so that the budget grows only with
     episodes whose return paid for their control)."""
     actions = torch.cat([data[1] for _, data in teacher_buffer.episodes]).to(actor.action_bias.device)
-    return float(((actions - actor.action_bias) / actor.action_scale).pow(2).mean())
+    return float(actor.in_half_ranges(actions).pow(2).mean())
 
 
 def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_range=None, sorted_returns=None,

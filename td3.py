@@ -44,6 +44,10 @@ class Actor(nn.Module):
     def forward(self, obs):
         return torch.tanh(self.net(obs)) * self.action_scale + self.action_bias
 
+    def in_half_ranges(self, actions):
+        """Actions as distances from the middle of the range in units of half the range ([-1, 1])."""
+        return (actions - self.action_bias) / self.action_scale
+
 
 class Critic(nn.Module):
     """Q(s, a): MLP with ReLU on the concatenated observation and action (optionally LayerNorm
@@ -185,7 +189,7 @@ class TD3:
                 bc_obs, bc_actions, weight = bc
                 regulariser = weight * (((self.actor(bc_obs) - bc_actions) / self.actor.action_scale) ** 2).mean()
             if action_l2 > 0:  # as action_l2 in OpenAI Baselines' HER: a prior for small actions (control cost)
-                squared = ((policy_actions - self.actor.action_bias) / self.actor.action_scale).pow(2).mean()
+                squared = self.actor.in_half_ranges(policy_actions).pow(2).mean()
                 regulariser = regulariser + action_l2 * F.relu(squared - action_budget)
             if bc is not None or action_l2 > 0:
                 actor_loss = actor_loss / q.abs().mean().detach() + regulariser
