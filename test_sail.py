@@ -1197,18 +1197,47 @@ def test_resume_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos, straigh
     assert_same_run(straight_run, tmp_path / "b")
 
 
-def test_resume_with_return_decomposition_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos):
+def return_decomposition_flags(poor_hopper_demos, out):
+    return [*RESUME_FLAGS, "--demos", poor_hopper_demos, "--return-decomposition", "1", "--decomposition-subset", "16",
+            "--noise-beta", "1", "--output-dir", str(out)]
+
+
+@pytest.fixture(scope="module")
+def straight_decomposition_run(tmp_path_factory, poor_hopper_demos):
+    """A --return-decomposition run of 1000 steps, never interrupted."""
+    out = tmp_path_factory.mktemp("straight_rrd")
+    proc = run_script("sail.py", *return_decomposition_flags(poor_hopper_demos, out), "--total-timesteps", "1000",
+                      "--run-name", "a")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out / "a"
+
+
+def test_resume_with_return_decomposition_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos,
+                                                                      straight_decomposition_run):
     """The reward model, its optimizer, the buffer's episode bounds and the current episode's
     colored exploration noise (stopped mid-episode) are in the checkpoint."""
-    flags = [*RESUME_FLAGS, "--demos", poor_hopper_demos, "--return-decomposition", "1", "--decomposition-subset", "16",
-             "--noise-beta", "1", "--output-dir", str(tmp_path)]
-    straight, first = run_scripts(("sail.py", *flags, "--total-timesteps", "1000", "--run-name", "a"),
-                                  ("sail.py", *flags, "--total-timesteps", "700", "--run-name", "b"))
-    assert straight.returncode == 0 and first.returncode == 0, (straight.stderr + first.stderr)[-3000:]
+    first = run_script("sail.py", *return_decomposition_flags(poor_hopper_demos, tmp_path), "--total-timesteps", "700",
+                       "--run-name", "b")
+    assert first.returncode == 0, first.stderr[-3000:]
     resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1000")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert_same_run(tmp_path / "a", tmp_path / "b")
+    assert_same_run(straight_decomposition_run, tmp_path / "b")
     assert all(np.isfinite(float(r["decomposition_loss"])) for r in read_csv(tmp_path / "b")[2:])
+
+
+def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(straight_decomposition_run, straight_run):
+    probe = os.path.join("results", "rrd_probe.py")
+    proc, without = run_scripts((probe, str(straight_decomposition_run), "--noise", "0", "0.1"), (probe, str(straight_run)))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stdout.splitlines()
+    assert [line.split(":")[0] for line in lines] == ["noise 0.0", "noise 0.1"] + [
+        f"actions x {k}" for k in (0.0, 0.5, 1.0, 1.5)]
+    changes = [re.search(r"mean r (\S+) a step, the env's control cost (\S+) a step$", line).groups()
+               for line in lines[2:]]
+    assert [float(c) for c in changes[2]] == [0.0, 0.0]  # the actions as played
+    cost = [float(c[1]) for c in changes]
+    assert cost[0] < cost[1] < 0 <= cost[3]  # the control cost grows with the actions (to their bounds)
+    assert without.returncode == 2 and "without --return-decomposition" in without.stderr
 
 
 def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_result(tmp_path, poor_hopper_demos, straight_run):

@@ -6,7 +6,11 @@ RUN_DIR is a sail.py run folder made with --return-decomposition > 0 (config.jso
 checkpoint.pt). Plays one episode of its actor per noise level (Gaussian action noise, as
 --exploration-noise) on a dense-reward copy of the env, and prints the episode's dense return
 against the sum of the reward model's r(s, a, s') over the same steps, and their per-step
-correlation. The learner never sees the dense reward; only this probe reads it.
+correlation. Then, on the steps of the first of those episodes, how the learned reward moves when
+the actions are scaled by 0 to 1.5 (clipped to the action bounds; s and s' kept) against how the
+env's control cost moves (its weight times the squared action norm, gymnasium's v5 locomotion
+envs): whether the model learned what actions cost. The learner never sees the dense reward;
+only this probe reads it.
 """
 
 import argparse
@@ -45,17 +49,31 @@ agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidde
 reward_model = RewardModel(obs_dim, act_dim, config["hidden"])
 load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), {"agent": agent, "reward_model": reward_model})
 rng = np.random.default_rng(args.seed)
+low, high = (torch.as_tensor(x, dtype=torch.float32) for x in (env.action_space.low, env.action_space.high))
+ctrl_cost_weight = getattr(env.unwrapped, "_ctrl_cost_weight", float("nan"))
 
+first_episode = None
 for noise in args.noise:
     obs, _ = env.reset()
-    dense, learned, done = [], [], False
+    dense, learned, steps, done = [], [], [], False
     while not done:
         action = agent.explore(obs, noise, rng) if noise > 0 else agent.act(obs)
         next_obs, reward, terminated, truncated, _ = env.step(action)
         learned.append(float(reward_model(*(torch.as_tensor(np.asarray(x, np.float32))[None]
                                               for x in (obs, action, next_obs)))))
         dense.append(float(reward))
+        steps.append((obs, action, next_obs))
         obs, done = next_obs, terminated or truncated
     dense, learned = np.array(dense), np.array(learned)
     print(f"noise {noise}: {len(dense)} steps, dense return {dense.sum():.1f}, sum of r {learned.sum():.1f}, "
           f"per-step correlation {np.corrcoef(dense, learned)[0, 1]:.2f}")
+    first_episode = first_episode or steps
+
+obs, actions, next_obs = (torch.as_tensor(np.array(x), dtype=torch.float32) for x in zip(*first_episode))
+base_reward = reward_model(obs, actions, next_obs).mean()
+base_cost = actions.pow(2).sum(1).mean()
+for scale in (0.0, 0.5, 1.0, 1.5):
+    scaled = torch.maximum(torch.minimum(scale * actions, high), low)
+    change = float(reward_model(obs, scaled, next_obs).mean() - base_reward)
+    cost_change = ctrl_cost_weight * float(scaled.pow(2).sum(1).mean() - base_cost)
+    print(f"actions x {scale}: mean r {change:+.3g} a step, the env's control cost {cost_change:+.3g} a step")
