@@ -19,6 +19,9 @@ from plumbing import ConfigError
 from td3 import TD3, colored_noise
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+# the tests that train networks in this process use small ones, which one thread runs as fast as
+# two, and two threads would contend with the single-threaded runs the suite starts beside them
+torch.set_num_threads(1)
 # the demo files committed in demos/ and their teacher return bands (make_demos.BANDS)
 SHIPPED = {"Hopper-v5": (1000, 1500), "Walker2d-v5": (1000, 1700), "HalfCheetah-v5": (4000, 6000), "Swimmer-v5": (40, 120), "Ant-v5": (1200, 1800)}
 
