@@ -1230,17 +1230,24 @@ def test_resume_with_return_decomposition_equals_an_uninterrupted_run(tmp_path, 
 
 def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(straight_decomposition_run, straight_run):
     probe = os.path.join("results", "rrd_probe.py")
-    proc, without = run_scripts((probe, str(straight_decomposition_run), "--noise", "0", "0.1"), (probe, str(straight_run)))
+    proc, without, bad = run_scripts((probe, str(straight_decomposition_run), "--noise", "0", "0.1", "--refit", "8",
+                                      "--refit-steps", "20"),
+                                     (probe, str(straight_run)), (probe, str(straight_decomposition_run), "--refit", "0"))
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.splitlines()
-    assert [line.split(":")[0] for line in lines] == ["noise 0.0", "noise 0.1"] + [
-        f"actions x {k}" for k in (0.0, 0.5, 1.0, 1.5)]
-    changes = [re.search(r"mean r (\S+) a step, the env's control cost (\S+) a step$", line).groups()
-               for line in lines[2:]]
-    assert [float(c) for c in changes[2]] == [0.0, 0.0]  # the actions as played
-    cost = [float(c[1]) for c in changes]
-    assert cost[0] < cost[1] < 0 <= cost[3]  # the control cost grows with the actions (to their bounds)
+    scaling = [f"actions x {k}" for k in (0.0, 0.5, 1.0, 1.5)]
+    heads = [line.split(":")[0] for line in lines]
+    assert heads[:6] == ["noise 0.0", "noise 0.1", *scaling] and heads[7:] == scaling
+    assert lines[6].startswith("refit with subsets of 8 steps, 20 minibatches (last loss ")
+    for block in (lines[2:6], lines[7:]):  # the run's reward model on a played episode; the refit one on R_B
+        changes = [re.search(r"mean r (\S+) a step, the env's control cost (\S+) a step$", line).groups()
+                   for line in block]
+        assert [float(c) for c in changes[2]] == [0.0, 0.0]  # the actions as played
+        cost = [float(c[1]) for c in changes]
+        assert cost[0] < cost[1] < 0 <= cost[3]  # the control cost grows with the actions (to their bounds)
+    assert "on R_B's last 1000 transitions" in lines[6]  # all of the 1000-step run's
     assert without.returncode == 2 and "without --return-decomposition" in without.stderr
+    assert bad.returncode == 2 and "--refit sizes must be" in bad.stderr
 
 
 def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_result(tmp_path, poor_hopper_demos, straight_run):

@@ -1,6 +1,6 @@
 """The return-decomposition probe: how well the learned per-step reward matches the dense one.
 
-    python results/rrd_probe.py RUN_DIR [--noise 0 0.1 0.5] [--seed 1234]
+    python results/rrd_probe.py RUN_DIR [--noise 0 0.1 0.5] [--seed 1234] [--refit 16 64 256]
 
 RUN_DIR is a sail.py run folder made with --return-decomposition > 0 (config.json and
 checkpoint.pt). Plays one episode of its actor per noise level (Gaussian action noise, as
@@ -11,6 +11,11 @@ the actions are scaled by 0 to 1.5 (clipped to the action bounds; s and s' kept)
 env's control cost moves (its weight times the squared action norm, gymnasium's v5 locomotion
 envs): whether the model learned what actions cost. The learner never sees the dense reward;
 only this probe reads it.
+
+--refit K [K ...] trains, for each subset size K, a fresh reward model on the run's self buffer
+R_B as sail.py does (`--decomposition-subset K`, --refit-steps minibatches), and prints the same
+action scaling over R_B's most recent 20k transitions (their own s, a, s'): whether a smaller or
+larger subset learns more of what actions cost from the same episodes.
 """
 
 import argparse
@@ -18,19 +23,25 @@ import json
 import os
 import sys
 
+import types
+
 import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from buffers import ReplayBuffer  # noqa: E402
 from envs import make_env  # noqa: E402
 from plumbing import load_checkpoint  # noqa: E402
-from sail import RewardModel  # noqa: E402
-from td3 import TD3  # noqa: E402
+from sail import RewardModel, train_reward_model  # noqa: E402
+from td3 import TD3, make_adam  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
 p.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.1, 0.5], help="action noise std per episode")
 p.add_argument("--seed", type=int, default=1234, help="seed of the probe's env and noise")
+p.add_argument("--refit", type=int, nargs="*", default=[], metavar="K",
+               help="subset sizes to train fresh reward models with on the run's R_B")
+p.add_argument("--refit-steps", type=int, default=5000, help="minibatches of each refit")
 args = p.parse_args()
 for name in ("config.json", "checkpoint.pt"):
     if not os.path.isfile(os.path.join(args.run_dir, name)):
@@ -38,6 +49,8 @@ for name in ("config.json", "checkpoint.pt"):
 config = json.load(open(os.path.join(args.run_dir, "config.json")))
 if not config.get("return_decomposition"):
     p.error(f"{args.run_dir} was made without --return-decomposition: it has no reward model")
+if any(k < 1 or k > config["batch_size"] for k in args.refit) or args.refit_steps < 1:
+    p.error(f"--refit sizes must be 1 to the run's batch size {config['batch_size']}, --refit-steps at least 1")
 torch.set_num_threads(1)
 torch.set_grad_enabled(False)
 env = make_env(config["env"], args.seed, sparse=False, time_feature=config["time_feature"],
@@ -47,7 +60,9 @@ obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
 agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidden=config["hidden"],
             critic_layer_norm=config.get("critic_layer_norm", False))
 reward_model = RewardModel(obs_dim, act_dim, config["hidden"])
-load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), {"agent": agent, "reward_model": reward_model})
+self_buffer = ReplayBuffer(obs_dim, act_dim, config["buffer_size"])
+load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"),
+                {"agent": agent, "reward_model": reward_model, "self_buffer": self_buffer})
 rng = np.random.default_rng(args.seed)
 low, high = (torch.as_tensor(x, dtype=torch.float32) for x in (env.action_space.low, env.action_space.high))
 ctrl_cost_weight = getattr(env.unwrapped, "_ctrl_cost_weight", float("nan"))
@@ -69,11 +84,27 @@ for noise in args.noise:
           f"per-step correlation {np.corrcoef(dense, learned)[0, 1]:.2f}")
     first_episode = first_episode or steps
 
-obs, actions, next_obs = (torch.as_tensor(np.array(x), dtype=torch.float32) for x in zip(*first_episode))
-base_reward = reward_model(obs, actions, next_obs).mean()
-base_cost = actions.pow(2).sum(1).mean()
-for scale in (0.0, 0.5, 1.0, 1.5):
-    scaled = torch.maximum(torch.minimum(scale * actions, high), low)
-    change = float(reward_model(obs, scaled, next_obs).mean() - base_reward)
-    cost_change = ctrl_cost_weight * float(scaled.pow(2).sum(1).mean() - base_cost)
-    print(f"actions x {scale}: mean r {change:+.3g} a step, the env's control cost {cost_change:+.3g} a step")
+
+def print_action_scaling(model, obs, actions, next_obs):
+    base_reward = model(obs, actions, next_obs).mean()
+    base_cost = actions.pow(2).sum(1).mean()
+    for scale in (0.0, 0.5, 1.0, 1.5):
+        scaled = torch.maximum(torch.minimum(scale * actions, high), low)
+        change = float(model(obs, scaled, next_obs).mean() - base_reward)
+        cost_change = ctrl_cost_weight * float(scaled.pow(2).sum(1).mean() - base_cost)
+        print(f"actions x {scale}: mean r {change:+.3g} a step, the env's control cost {cost_change:+.3g} a step")
+
+
+print_action_scaling(reward_model, *(torch.as_tensor(np.array(x), dtype=torch.float32) for x in zip(*first_episode)))
+recent = (self_buffer.ptr - torch.arange(1, min(20000, self_buffer.size) + 1)) % self_buffer.capacity
+for subset in args.refit:
+    torch.manual_seed(args.seed)
+    model = RewardModel(obs_dim, act_dim, config["hidden"])
+    optimizer = make_adam(model.parameters(), config["lr"])
+    refit_args = types.SimpleNamespace(batch_size=config["batch_size"], decomposition_subset=subset)
+    with torch.enable_grad():
+        for _ in range(args.refit_steps):
+            loss = train_reward_model(model, optimizer, self_buffer, refit_args)["decomposition_loss"]
+    print(f"refit with subsets of {subset} steps, {args.refit_steps} minibatches (last loss {float(loss):.4g}), "
+          f"on R_B's last {len(recent)} transitions:")
+    print_action_scaling(model, self_buffer.obs[recent], self_buffer.actions[recent], self_buffer.next_obs[recent])
