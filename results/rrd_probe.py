@@ -22,7 +22,6 @@ import argparse
 import json
 import os
 import sys
-
 import types
 
 import numpy as np
