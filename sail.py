@@ -76,13 +76,14 @@ PRESETS = {
 }
 CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "eval_return_actor", "eval_return_target",
                "train_episodic_return", "teacher_threshold", "teacher_episodes", "promotions", "alpha", "disc_loss",
-               "disc_teacher", "disc_self", "reward_mean", "decomposition_loss", "critic_loss", "actor_loss", "q",
+               "disc_teacher", "disc_self", "reward_mean", "decomposition_loss",
+               "decomposition_action_cost", "critic_loss", "actor_loss", "q",
                "updates", "steps_per_second", "time"]
 # what --resume RUN_DIR may change; every other flag is the saved run's
 RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
 PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
-             "decomposition_unit": "range", "n_step": 1, "utd": 1,
+             "decomposition_unit": "range", "decomposition_action_cost": False, "n_step": 1, "utd": 1,
              "bc_weight": 0.0, "action_l2": 0.0, "action_budget": "none", "disc_action_norm": False, "noise_beta": 0.0,
              "contact_forces": True, "on_policy_from": "start"}
 
@@ -172,6 +173,9 @@ def parse_args(argv=None):
                    "reward is divided by: range = the range of episodic returns seen over the env's time limit; rate "
                    "= the range of per-step returns (return / length) seen: the same where every episode runs to the "
                    "limit, a larger unit where episodes end early, where range's unit lets r outweigh D's reward")
+    g.add_argument("--decomposition-action-cost", action="store_true", help="the learned reward also subtracts "
+                   "c ||a||^2, a quadratic action cost whose weight c >= 0 is learned with it from the episodic returns "
+                   "(the form of gymnasium's control cost), which the network alone learns only in part")
     g.add_argument("--decomposition-subset", type=positive_int, default=64, help="steps drawn from each episode "
                    "per reward-model minibatch (RRD's K); --batch-size / K episodes per minibatch")
     g.add_argument("--time-feature", action=argparse.BooleanOptionalAction, default=True, help="append 1 - t/T to obs")
@@ -239,6 +243,8 @@ def check_args(p, args):
     if args.action_budget != "none" and not (args.action_l2 > 0 and args.reward in ("sail", "airl")):
         p.error(f"--action-budget {args.action_budget} is what --action-l2 leaves free: it needs --action-l2 > 0 "
                 "and demos (not --reward env or none)")
+    if args.decomposition_action_cost and args.return_decomposition <= 0:
+        p.error("--decomposition-action-cost is part of the learned reward: it needs --return-decomposition > 0")
     if args.return_decomposition > 0 and args.decomposition_subset > args.batch_size:
         p.error(f"--decomposition-subset {args.decomposition_subset} is more than --batch-size {args.batch_size}")
     if args.buffer_size < 1001:
@@ -365,14 +371,37 @@ def scale_returns(returns, kind, return_range, sorted_returns):
 
 class RewardModel(nn.Module):
     """r(s, a, s'), a per-step reward learned from episodic returns alone (RRD, Ren et al. 2022;
-    inputs s, a and the change of state, as in github.com/Stilwell-Git/Randomized-Return-Decomposition)."""
+    inputs s, a and the change of state, as in github.com/Stilwell-Git/Randomized-Return-Decomposition).
 
-    def __init__(self, obs_dim, act_dim, hidden):
+    With `action_cost`, minus a learned quadratic cost of the action, c ||a||^2 with c >= 0, the form
+    of the control cost in gymnasium's locomotion rewards. The network alone, fitted to episode sums,
+    learns only a fraction of what actions cost (it reads a large action as the speed it makes); the
+    explicit term lets the returns' differences set c. c starts near 0 (0.0025) and stays there where
+    the returns do not ask for it."""
+
+    ACTION_COST_LR = 1e-2  # one scalar on a log-like scale: at the networks' 3e-4, Adam needs ~1e5 steps to move it
+
+    def __init__(self, obs_dim, act_dim, hidden, action_cost=False):
         super().__init__()
         self.net = mlp([2 * obs_dim + act_dim, *hidden, 1], nn.ReLU)
+        self.register_parameter("action_cost_rho", nn.Parameter(torch.tensor(-6.0)) if action_cost else None)
+
+    def action_cost(self):
+        """c = softplus(rho) >= 0, the weight of the squared action norm (0 without `action_cost`)."""
+        return F.softplus(self.action_cost_rho) if self.action_cost_rho is not None else torch.tensor(0.0)
+
+    def parameter_groups(self, lr):
+        """Adam's parameter groups: the network at `lr`, c's parameter at ACTION_COST_LR."""
+        groups = [{"params": list(self.net.parameters()), "lr": lr}]
+        if self.action_cost_rho is not None:
+            groups.append({"params": [self.action_cost_rho], "lr": self.ACTION_COST_LR})
+        return groups
 
     def forward(self, obs, actions, next_obs):
-        return self.net(torch.cat([obs, actions, next_obs - obs], dim=-1)).squeeze(-1)
+        reward = self.net(torch.cat([obs, actions, next_obs - obs], dim=-1)).squeeze(-1)
+        if self.action_cost_rho is not None:
+            reward = reward - self.action_cost() * actions.pow(2).sum(-1)
+        return reward
 
 
 def train_reward_model(reward_model, optimizer, self_buffer, args):
@@ -390,7 +419,10 @@ def train_reward_model(reward_model, optimizer, self_buffer, args):
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
-    return {"decomposition_loss": loss.detach()}
+    stats = {"decomposition_loss": loss.detach()}
+    if reward_model.action_cost_rho is not None:
+        stats["decomposition_action_cost"] = reward_model.action_cost().detach()
+    return stats
 
 
 def decomposition_unit(kind, return_range, rate_range, episode_steps):
@@ -509,8 +541,8 @@ def train(args):
              "rng": plumbing.RNGs(rng)}
     reward_model = None
     if args.return_decomposition > 0:
-        reward_model = RewardModel(obs_dim, act_dim, args.hidden).to(device)
-        reward_optimizer = make_adam(reward_model.parameters(), args.lr)
+        reward_model = RewardModel(obs_dim, act_dim, args.hidden, args.decomposition_action_cost).to(device)
+        reward_optimizer = make_adam(reward_model.parameter_groups(args.lr), args.lr)
         parts |= {"reward_model": reward_model, "reward_optimizer": reward_optimizer}
 
     # From here on Ctrl-C and SIGTERM only set stop.requested: the loop then stops between two

@@ -167,6 +167,15 @@ GRIDS = {
         {"sail-ln-onpolicy-promotion-rrd1-rate-dan": ("sail.py", [
             *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate",
             "--disc-action-norm"])}, [1, 2, 3]),
+    # the same with a learned quadratic action cost in the decomposition's reward (--decomposition-action-cost): on
+    # Ant-v5 D stayed blind to the actions' size even so, and the per-step reward model learned about a fifth of
+    # what they cost (results/rrd_probe.py); refitted with the explicit term on the same R_B it learned c = 0.40-0.44
+    # (the env's 0.5), on HalfCheetah, Hopper and Walker2d c stayed where it started (0.003)
+    "learning-action-cost": grid(
+        ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+        {"sail-ln-onpolicy-promotion-rrd1-rate-dan-cost": ("sail.py", [
+            *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate",
+            "--disc-action-norm", "--decomposition-action-cost"])}, [1, 2, 3]),
     # Ant-v5 without its 78 contact forces in the observation (27 entries, Ant-v4's default; the paper's Ant-v2
     # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
     "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*OFF_POLICY, "--no-contact-forces"])},

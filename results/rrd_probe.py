@@ -1,6 +1,6 @@
 """The return-decomposition probe: how well the learned per-step reward matches the dense one.
 
-    python results/rrd_probe.py RUN_DIR [--noise 0 0.1 0.5] [--seed 1234] [--refit 16 64 256]
+    python results/rrd_probe.py RUN_DIR [--noise 0 0.1 0.5] [--seed 1234] [--refit 16 64 256] [--refit-action-cost]
 
 RUN_DIR is a sail.py run folder made with --return-decomposition > 0 (config.json and
 checkpoint.pt). Plays one episode of its actor per noise level (Gaussian action noise, as
@@ -15,7 +15,9 @@ only this probe reads it.
 --refit K [K ...] trains, for each subset size K, a fresh reward model on the run's self buffer
 R_B as sail.py does (`--decomposition-subset K`, --refit-steps minibatches), and prints the same
 action scaling over R_B's most recent 20k transitions (their own s, a, s'): whether a smaller or
-larger subset learns more of what actions cost from the same episodes.
+larger subset learns more of what actions cost from the same episodes. A run made with
+--decomposition-action-cost (or any run, with --refit-action-cost) refits with it, and both report the
+learned weight c.
 """
 
 import argparse
@@ -41,6 +43,8 @@ p.add_argument("--seed", type=int, default=1234, help="seed of the probe's env a
 p.add_argument("--refit", type=int, nargs="*", default=[], metavar="K",
                help="subset sizes to train fresh reward models with on the run's R_B")
 p.add_argument("--refit-steps", type=int, default=5000, help="minibatches of each refit")
+p.add_argument("--refit-action-cost", action="store_true", help="refit with the learned quadratic action cost "
+               "(sail.py's --decomposition-action-cost) whether or not the run had it")
 args = p.parse_args()
 for name in ("config.json", "checkpoint.pt"):
     if not os.path.isfile(os.path.join(args.run_dir, name)):
@@ -58,7 +62,8 @@ env = make_env(config["env"], args.seed, sparse=False, time_feature=config["time
 obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
 agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidden=config["hidden"],
             critic_layer_norm=config.get("critic_layer_norm", False))
-reward_model = RewardModel(obs_dim, act_dim, config["hidden"])
+action_cost = config.get("decomposition_action_cost", False)  # runs saved before the flag: without
+reward_model = RewardModel(obs_dim, act_dim, config["hidden"], action_cost)
 self_buffer = ReplayBuffer(obs_dim, act_dim, config["buffer_size"])
 load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"),
                 {"agent": agent, "reward_model": reward_model, "self_buffer": self_buffer})
@@ -94,16 +99,20 @@ def print_action_scaling(model, obs, actions, next_obs):
         print(f"actions x {scale}: mean r {change:+.3g} a step, the env's control cost {cost_change:+.3g} a step")
 
 
+if action_cost:
+    print(f"learned action cost c = {float(reward_model.action_cost()):.4g} per unit of squared action norm "
+          f"(the env's control cost weight: {ctrl_cost_weight:.4g})")
 print_action_scaling(reward_model, *(torch.as_tensor(np.array(x), dtype=torch.float32) for x in zip(*first_episode)))
 recent = (self_buffer.ptr - torch.arange(1, min(20000, self_buffer.size) + 1)) % self_buffer.capacity
 for subset in args.refit:
     torch.manual_seed(args.seed)
-    model = RewardModel(obs_dim, act_dim, config["hidden"])
-    optimizer = make_adam(model.parameters(), config["lr"])
+    model = RewardModel(obs_dim, act_dim, config["hidden"], action_cost or args.refit_action_cost)
+    optimizer = make_adam(model.parameter_groups(config["lr"]), config["lr"])
     refit_args = types.SimpleNamespace(batch_size=config["batch_size"], decomposition_subset=subset)
     with torch.enable_grad():
         for _ in range(args.refit_steps):
             loss = train_reward_model(model, optimizer, self_buffer, refit_args)["decomposition_loss"]
-    print(f"refit with subsets of {subset} steps, {args.refit_steps} minibatches (last loss {float(loss):.4g}), "
-          f"on R_B's last {len(recent)} transitions:")
+    learned_cost = f", c = {float(model.action_cost()):.4g}" if model.action_cost_rho is not None else ""
+    print(f"refit with subsets of {subset} steps, {args.refit_steps} minibatches (last loss {float(loss):.4g}"
+          f"{learned_cost}), on R_B's last {len(recent)} transitions:")
     print_action_scaling(model, self_buffer.obs[recent], self_buffer.actions[recent], self_buffer.next_obs[recent])
