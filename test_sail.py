@@ -993,19 +993,28 @@ def test_episode_subsets_hold_steps_of_one_finished_episode_and_mask_overwritten
                                                                                     buffer.episode_lengths)
 
 
+def made_up_episodes(rng, act_dim, per_step_reward, act_scale=1.0):
+    """A self buffer of about 4900 steps in episodes of 2 to 16 steps: states uniform in [-1, 1]^2
+    (s' = s), actions uniform in [-1, 1]^act_dim times act_scale times a factor drawn per episode
+    (how hard it acts); of the hidden per_step_reward(obs, actions) only each episode's sum is stored."""
+    buffer = ReplayBuffer(obs_dim=2, act_dim=act_dim, capacity=5000)
+    while buffer.size < 4900:
+        start, length = buffer.ptr, int(rng.integers(2, 17))
+        obs = rng.uniform(-1, 1, (length, 2)).astype(np.float32)
+        actions = (act_scale * rng.uniform(0, 1) * rng.uniform(-1, 1, (length, act_dim))).astype(np.float32)
+        for o, a in zip(obs, actions):
+            buffer.add(o, a, 0.0, o, 0.0)
+        buffer.end_episode(start, float(per_step_reward(obs, actions).sum()))
+    return buffer
+
+
 def test_return_decomposition_recovers_a_per_step_reward_from_episodic_returns():
     """Episodes of 2 to 16 steps whose hidden per-step reward is 2 * obs[0] - 1: only each
     episode's sum is stored, and the reward model learns the per-step reward from the sums."""
     import argparse
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
-    buffer = ReplayBuffer(obs_dim=2, act_dim=1, capacity=5000)
-    while buffer.size < 4900:
-        start, length = buffer.ptr, int(rng.integers(2, 17))
-        obs = rng.uniform(-1, 1, (length, 2)).astype(np.float32)
-        for o in obs:
-            buffer.add(o, [0.0], 0.0, o, 0.0)
-        buffer.end_episode(start, float((2 * obs[:, 0] - 1).sum()))
+    buffer = made_up_episodes(rng, 1, lambda obs, actions: 2 * obs[:, 0] - 1, act_scale=0.0)
     model = RewardModel(2, 1, [32, 32])
     optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
     args = argparse.Namespace(batch_size=256, decomposition_subset=16)
@@ -1028,14 +1037,7 @@ def test_decomposition_action_cost_learns_the_weight_of_a_quadratic_control_cost
     import argparse
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
-    buffer = ReplayBuffer(obs_dim=2, act_dim=8, capacity=5000)
-    while buffer.size < 4900:
-        start, length = buffer.ptr, int(rng.integers(2, 17))
-        obs = rng.uniform(-1, 1, (length, 2)).astype(np.float32)
-        actions = (rng.uniform(0, 1) * rng.uniform(-1, 1, (length, 8))).astype(np.float32)
-        for o, a in zip(obs, actions):
-            buffer.add(o, a, 0.0, o, 0.0)
-        buffer.end_episode(start, float((2 * obs[:, 0] - 1 - cost_weight * (actions ** 2).sum(1)).sum()))
+    buffer = made_up_episodes(rng, 8, lambda obs, actions: 2 * obs[:, 0] - 1 - cost_weight * (actions ** 2).sum(1))
     model = RewardModel(2, 8, [4], action_cost=True)
     optimizer = torch.optim.Adam(model.parameter_groups(3e-3))
     args = argparse.Namespace(batch_size=256, decomposition_subset=16)
