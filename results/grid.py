@@ -170,7 +170,7 @@ GRIDS = {
     # the same with a learned quadratic action cost in the decomposition's reward (--decomposition-action-cost): on
     # Ant-v5 D stayed blind to the actions' size even so, and the per-step reward model learned about a fifth of
     # what they cost (results/rrd_probe.py); refitted with the explicit term on the same R_B it learned c = 0.385
-    # (the env's 0.5); on HalfCheetah, Walker2d and Swimmer c stayed where it started (0.002-0.003)
+    # (the env's 0.5); on HalfCheetah, Walker2d and Swimmer c stayed near where it started (0.0017-0.0030)
     "learning-action-cost": grid(
         ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
         {"sail-ln-onpolicy-promotion-rrd1-rate-dan-cost": ("sail.py", [

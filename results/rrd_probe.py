@@ -62,8 +62,8 @@ env = make_env(config["env"], args.seed, sparse=False, time_feature=config["time
 obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
 agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidden=config["hidden"],
             critic_layer_norm=config.get("critic_layer_norm", False))
-action_cost = config.get("decomposition_action_cost", False)  # runs saved before the flag: without
-reward_model = RewardModel(obs_dim, act_dim, config["hidden"], action_cost)
+learn_action_cost = config.get("decomposition_action_cost", False)  # runs saved before the flag: without
+reward_model = RewardModel(obs_dim, act_dim, config["hidden"], learn_action_cost)
 self_buffer = ReplayBuffer(obs_dim, act_dim, config["buffer_size"])
 load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"),
                 {"agent": agent, "reward_model": reward_model, "self_buffer": self_buffer})
@@ -99,14 +99,14 @@ def print_action_scaling(model, obs, actions, next_obs):
         print(f"actions x {scale}: mean r {change:+.3g} a step, the env's control cost {cost_change:+.3g} a step")
 
 
-if action_cost:
+if learn_action_cost:
     print(f"learned action cost c = {float(reward_model.action_cost()):.4g} per unit of squared action norm "
           f"(the env's control cost weight: {ctrl_cost_weight:.4g})")
 print_action_scaling(reward_model, *(torch.as_tensor(np.array(x), dtype=torch.float32) for x in zip(*first_episode)))
 recent = (self_buffer.ptr - torch.arange(1, min(20000, self_buffer.size) + 1)) % self_buffer.capacity
 for subset in args.refit:
     torch.manual_seed(args.seed)
-    model = RewardModel(obs_dim, act_dim, config["hidden"], action_cost or args.refit_action_cost)
+    model = RewardModel(obs_dim, act_dim, config["hidden"], learn_action_cost or args.refit_action_cost)
     optimizer = make_adam(model.parameter_groups(config["lr"]), config["lr"])
     refit_args = types.SimpleNamespace(batch_size=config["batch_size"], decomposition_subset=subset)
     with torch.enable_grad():
