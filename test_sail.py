@@ -1344,9 +1344,17 @@ def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     assert "3 ended early" in lines[summary] and lines[summary + 1].startswith("teacher (1 episodes): first entry")
     assert lines[summary + 2].startswith("squared action norm per step: actor ")  # and the control cost it makes
     assert "control cost weight 0.001:" in lines[summary + 2]  # Hopper-v5's
-    training = lines[summary + 4:]  # R_B's episodes: the straight run's 1000 steps, nearly all falls
-    assert lines[summary + 3].startswith("training episodes (R_B") and len(training) == 1
-    assert training[0].startswith("  0-50000: ") and int(training[0].split(" ended early")[0].split(", ")[-1]) >= 10
+    training = lines[summary + 4]  # R_B's episodes: the straight run's 1000 steps, nearly all falls
+    assert lines[summary + 3].startswith("training episodes (R_B") and training.startswith("  0-50000: ")
+    falls = int(training.split(" ended early")[0].split(", ")[-1])
+    assert falls >= 10
+    # the critic by steps to a termination: one terminal step per fall, and no episode ran to the limit
+    assert lines[summary + 5].startswith("the critic's min(Q1, Q2) at R_B's actions (last 1000 transitions)")
+    groups = lines[summary + 6:]
+    assert [line.split(":")[0].strip() for line in groups] == [
+        "0 (the terminal step)", "1-3", "4-10", "11-30", "31-100", "episodes that ran to the limit"]
+    assert groups[0].startswith(f"  0 (the terminal step): {falls} transitions, mean over {falls}: Q ")
+    assert groups[-1] == "  episodes that ran to the limit: none"
     assert missing.returncode == 2 and "has no config.json" in missing.stderr
 
 

@@ -16,7 +16,9 @@ its healthy range (Ant-v5: a torso height outside [0.2, 1.0]; lying upside down 
 An episode ended early if it is shorter than the time limit (with DAC's absorbing states, one step
 longer than the fall; the absorbing state is left out of the ranges). Last, the run's own training
 episodes (those in its replay buffer R_B, played with exploration noise), per --window env steps:
-how many ended early, their lengths and the mean return.
+how many ended early, their lengths and the mean return; and whether the critic sees an early end
+coming: its min(Q1, Q2) at R_B's actions over the last 100k transitions, by steps to a termination,
+against the episodes that ran to the limit, with the squared action norm there.
 """
 
 import argparse
@@ -110,3 +112,29 @@ for start in range(0, int(starts.max()) + 1, args.window):
     listed = f" (lengths {', '.join(map(str, short[:10]))}{', ...' if len(short) > 10 else ''})" if len(short) else ""
     print(f"  {start}-{start + args.window}: {window.sum()} episodes, {len(short)} ended early{listed}, "
           f"mean return {episode_returns[window].mean():.1f}")
+
+# Does the critic see an early end coming? Its min(Q1, Q2) at R_B's own actions over the last 100k
+# transitions, by steps to the end of episodes that ended in a termination (where the TD target is r
+# alone), against the episodes that ran to the limit; with the squared action there (DAC's runs end
+# in the absorbing state, never a termination: none to show)
+obs, actions, terminated = (self_buffer["data"][i] for i in (0, 1, 4))
+n = len(obs)
+index = np.arange(n)
+episode_start, episode_length = self_buffer["episode_starts"].numpy(), self_buffer["episode_lengths"].numpy()
+last = (episode_start + episode_length - 1) % n  # R_B is a ring
+to_end = (last - index) % n
+finished = ~np.isnan(self_buffer["episode_returns"].numpy()) & (index >= n - 100_000)
+ended = finished & (terminated.numpy()[last] == 1)
+print(f"the critic's min(Q1, Q2) at R_B's actions (last {min(n, 100_000)} transitions), by steps to a termination:")
+groups = [("0 (the terminal step)", ended & (to_end == 0)), ("1-3", ended & (to_end >= 1) & (to_end <= 3)),
+          ("4-10", ended & (to_end >= 4) & (to_end <= 10)), ("11-30", ended & (to_end >= 11) & (to_end <= 30)),
+          ("31-100", ended & (to_end >= 31) & (to_end <= 100)), ("episodes that ran to the limit", finished & ~ended)]
+for name, selected in groups:
+    rows = np.flatnonzero(selected)
+    if len(rows) == 0:
+        print(f"  {name}: none")
+        continue
+    count, rows = len(rows), torch.as_tensor(np.random.default_rng(0).choice(rows, min(len(rows), 2000), replace=False))
+    q = torch.min(*agent.critic(obs[rows].to(agent.device), actions[rows].to(agent.device)))
+    print(f"  {name}: {count} transitions, mean over {len(rows)}: Q {q.mean().item():.1f}, "
+          f"squared action norm {actions[rows].pow(2).sum(1).mean().item():.2f}")
