@@ -1358,10 +1358,15 @@ def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     assert missing.returncode == 2 and "has no config.json" in missing.stderr
 
 
-def test_checkpoint_probe_reports_q_slope_and_d(straight_run):
-    proc = run_script(os.path.join("results", "probe.py"), str(straight_run))
+def test_checkpoint_probe_reports_q_slope_and_d(straight_run, straight_decomposition_run):
+    probe = os.path.join("results", "probe.py")
+    proc, decomposition = run_scripts((probe, str(straight_run)), (probe, str(straight_decomposition_run)))
     assert proc.returncode == 0, proc.stderr[-3000:]
+    assert decomposition.returncode == 0, decomposition.stderr[-3000:]
+    learned = [line for line in decomposition.stdout.splitlines()[-8:] if "transitions" in line]
+    assert learned and all(re.search(r"learned reward -?\d+\.\d+, squared action norm", line) for line in learned)
     q_line, *d_lines = proc.stdout.splitlines()
+    d_lines, bins = d_lines[:9], d_lines[9:]
     mean_q, slope, ratio = map(float, re.search(r"mean \|Q\| (\S+), mean slope per action dimension (\S+), "
                                                 r"their ratio (\S+)$", q_line).groups())
     assert mean_q > 0 and slope > 0
@@ -1369,6 +1374,10 @@ def test_checkpoint_probe_reports_q_slope_and_d(straight_run):
     assert len(d_lines) == 9 and all(0 <= float(line.rsplit(": ", 1)[1]) <= 1 for line in d_lines)
     assert [line.split(": ")[0] for line in d_lines[4:]] == [f"D on the teacher's states, actions x {k}"
                                                            for k in (0.0, 0.5, 1.0, 1.5, 2.0)]
+    # the rewards by bins of the torso's height: every transition of the 1000-step R_B in one of 8 bins
+    assert bins[0] == "R_B's last 1000 transitions by observation 0:" and len(bins) == 9
+    counts = [int(m.group(1)) for m in (re.search(r": (\d+) transitions, D's reward", line) for line in bins[1:]) if m]
+    assert sum(counts) == 1000 and not any("learned reward" in line for line in bins)  # a run without the decomposition
 
 
 def test_checkpoints_are_read_onto_the_cpu_whatever_the_run_device(tmp_path, monkeypatch):

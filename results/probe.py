@@ -12,7 +12,10 @@ unit on each action dimension of an actor's loss that divides Q by its magnitude
 --action-l2); and D's mean output on the recorded teacher episodes of the run's demo file with one
 observation (by default 8, the forward velocity of HalfCheetah-v5) scaled by 0.75 to 1.5, then
 with the teacher's actions scaled by 0 to 2 (clipped to the action bounds): how much D's reward
-depends on the action at all.
+depends on the action at all. Last, over the last 100k transitions of the self buffer, in 8 equal
+bins of observation --height-index (by default 0, the torso's height on Ant-v5, Hopper-v5 and
+Walker2d-v5): how many there are, D's reward softplus(logit) (-log(1 - D)), the learned reward of
+--return-decomposition where the run has one, and the squared action norm.
 """
 
 import argparse
@@ -28,12 +31,13 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from buffers import default_demo_path, load_demos  # noqa: E402
 from envs import absorbing_state, add_features  # noqa: E402
 from plumbing import load_checkpoint  # noqa: E402
-from sail import Discriminator  # noqa: E402
+from sail import Discriminator, RewardModel  # noqa: E402
 from td3 import Actor, TwinCritic  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
 p.add_argument("--velocity-index", type=int, default=8, help="the observation scaled in the D probe")
+p.add_argument("--height-index", type=int, default=0, help="the observation whose bins the last probe reports")
 args = p.parse_args()
 for name in ("config.json", "checkpoint.pt"):
     if not os.path.isfile(os.path.join(args.run_dir, name)):
@@ -86,3 +90,24 @@ for scale in (0.0, 0.5, 1.0, 1.5, 2.0):
     scaled = (actor.action_bias + scale * (actions - actor.action_bias)).clamp(low, high)
     d = torch.sigmoid(disc(disc.inputs(obs, scaled))).mean().item()
     print(f"D on the teacher's states, actions x {scale}: {d:.3f}")
+
+# Where in the state the rewards go: D's reward and the learned one, by bins of one observation entry
+recent = slice(max(0, len(self_obs) - 100_000), len(self_obs))
+obs, actions, next_obs = (state["self_buffer"]["data"][i][recent] for i in (0, 1, 3))
+d_reward = torch.nn.functional.softplus(disc(disc.inputs(obs, actions)))
+learned = None
+if state.get("reward_model") is not None:
+    reward_model = RewardModel(obs_dim, act_dim, config["hidden"], config.get("decomposition_action_cost", False))
+    reward_model.load_state_dict(state["reward_model"])
+    learned = reward_model(obs, actions, next_obs)
+entry = obs[:, args.height_index]
+edges = torch.linspace(entry.min().item(), entry.max().item(), 9)
+print(f"R_B's last {len(obs)} transitions by observation {args.height_index}:")
+for i, (low, high) in enumerate(zip(edges[:-1], edges[1:])):
+    inside = (entry >= low) & ((entry < high) if i < 7 else (entry <= high))
+    if not inside.any():
+        print(f"  {low:.2f} to {high:.2f}: none")
+        continue
+    print(f"  {low:.2f} to {high:.2f}: {int(inside.sum())} transitions, D's reward {d_reward[inside].mean().item():.3f}, "
+          + (f"learned reward {learned[inside].mean().item():.3f}, " if learned is not None else "")
+          + f"squared action norm {actions[inside].pow(2).sum(1).mean().item():.2f}")
