@@ -14,7 +14,7 @@ observation (by default 8, the forward velocity of HalfCheetah-v5) scaled by 0.7
 with the teacher's actions scaled by 0 to 2 (clipped to the action bounds): how much D's reward
 depends on the action at all. Last, over the last 100k transitions of the self buffer, in 8 equal
 bins of observation --height-index (by default 0, the torso's height on Ant-v5, Hopper-v5 and
-Walker2d-v5): how many there are, D's reward softplus(logit) (-log(1 - D)), the learned reward of
+Walker2d-v5): how many there are, D's reward as the critic got it (--reward sail or airl), the learned reward of
 --return-decomposition where the run has one, and the squared action norm.
 """
 
@@ -31,7 +31,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from buffers import default_demo_path, load_demos  # noqa: E402
 from envs import absorbing_state, add_features  # noqa: E402
 from plumbing import load_checkpoint  # noqa: E402
-from sail import Discriminator, RewardModel  # noqa: E402
+from sail import Discriminator, RewardModel, shaped_reward  # noqa: E402
 from td3 import Actor, TwinCritic  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -94,7 +94,7 @@ for scale in (0.0, 0.5, 1.0, 1.5, 2.0):
 # Where in the state the rewards go: D's reward and the learned one, by bins of one observation entry
 recent = slice(max(0, len(self_obs) - 100_000), len(self_obs))
 obs, actions, next_obs = (state["self_buffer"]["data"][i][recent] for i in (0, 1, 3))
-d_reward = torch.nn.functional.softplus(disc(disc.inputs(obs, actions)))
+d_reward = shaped_reward(disc, obs, actions, config["reward"]) if config["reward"] in ("sail", "airl") else None
 learned = None
 if state.get("reward_model") is not None:
     reward_model = RewardModel(obs_dim, act_dim, config["hidden"], config.get("decomposition_action_cost", False))
@@ -108,6 +108,7 @@ for i, (low, high) in enumerate(zip(edges[:-1], edges[1:])):
     if not inside.any():
         print(f"  {low:.2f} to {high:.2f}: none")
         continue
-    print(f"  {low:.2f} to {high:.2f}: {int(inside.sum())} transitions, D's reward {d_reward[inside].mean().item():.3f}, "
+    print(f"  {low:.2f} to {high:.2f}: {int(inside.sum())} transitions, "
+          + (f"D's reward {d_reward[inside].mean().item():.3f}, " if d_reward is not None else "")
           + (f"learned reward {learned[inside].mean().item():.3f}, " if learned is not None else "")
           + f"squared action norm {actions[inside].pow(2).sum(1).mean().item():.2f}")
