@@ -126,9 +126,9 @@ to_end = (last - index) % n
 finished = ~np.isnan(self_buffer["episode_returns"].numpy()) & (index >= n - 100_000)
 ended = finished & (terminated.numpy()[last] == 1)
 print(f"the critic's min(Q1, Q2) at R_B's actions (last {min(n, 100_000)} transitions), by steps to a termination:")
-groups = [("0 (the terminal step)", ended & (to_end == 0)), ("1-3", ended & (to_end >= 1) & (to_end <= 3)),
-          ("4-10", ended & (to_end >= 4) & (to_end <= 10)), ("11-30", ended & (to_end >= 11) & (to_end <= 30)),
-          ("31-100", ended & (to_end >= 31) & (to_end <= 100)), ("episodes that ran to the limit", finished & ~ended)]
+groups = [(f"{low}-{high}" if low else "0 (the terminal step)", ended & (to_end >= low) & (to_end <= high))
+          for low, high in ((0, 0), (1, 3), (4, 10), (11, 30), (31, 100))]
+groups.append(("episodes that ran to the limit", finished & ~ended))
 for name, selected in groups:
     rows = np.flatnonzero(selected)
     if len(rows) == 0:

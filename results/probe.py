@@ -103,8 +103,9 @@ if state.get("reward_model") is not None:
 entry = obs[:, args.height_index]
 edges = torch.linspace(entry.min().item(), entry.max().item(), 9)
 print(f"R_B's last {len(obs)} transitions by observation {args.height_index}:")
+bins = torch.bucketize(entry, edges[1:-1], right=True)  # 0-7; the top edge falls in the last bin
 for i, (low, high) in enumerate(zip(edges[:-1], edges[1:])):
-    inside = (entry >= low) & ((entry < high) if i < 7 else (entry <= high))
+    inside = bins == i
     if not inside.any():
         print(f"  {low:.2f} to {high:.2f}: none")
         continue
