@@ -87,18 +87,31 @@ def setting(key, value):
 def method_name(config):
     """The paper's name of what a run trained: its --algo, plus the ablation flags it set and every
     other learner flag that differs from its preset's default in sail.py today (a flag missing from
-    an older run's config takes the value it had before the flag existed: sail.PREDATING)."""
-    from sail import PREDATING, PRESETS
-    sail_run = config["algo"] in PRESETS  # gail.py and bc.py have defaults of their own
-    # an ablation flag that the run's preset sets (DAC's and TD3's no-lfd) is part of the method, not an ablation
-    flags = [name for flag, name in ABLATION_FLAGS.items()
-             if config.get(flag) and not (sail_run and preset_defaults(config["algo"])[flag])]
-    if sail_run:
-        flags += [setting(key, value) for key, default in preset_defaults(config["algo"]).items()
-                  if key not in SETUP_FLAGS and key not in ABLATION_FLAGS
-                  and (value := config.get(key, PREDATING.get(key, default))) != default]
-    name = {"sail": "SAIL", "dac": "DAC", "td3": "TD3 (sparse)", "ircr": "IRCR", "bc": "BC", "gail": "GAIL", "pofd": "POfD"}[config["algo"]]
+    an older run's config takes the value it had before the flag existed: sail.PREDATING). A SAIL
+    run is named from whichever of sail.py's defaults and the paper's SAIL it is nearer to."""
+    from sail import PRESETS
+    if config["algo"] not in PRESETS:  # gail.py and bc.py have defaults of their own
+        return ALGO_NAMES[config["algo"]]
+    presets = ("sail", "sail-paper") if config["algo"] in ("sail", "sail-paper") else (config["algo"],)
+    name, flags = min(((ALGO_NAMES[algo], differences(config, preset_defaults(algo))) for algo in presets),
+                      key=lambda named: len(named[1]))
     return f"{name} ({', '.join(flags)})" if flags else name
+
+
+ALGO_NAMES = {"sail": "SAIL", "sail-paper": "SAIL-paper", "dac": "DAC", "td3": "TD3 (sparse)", "ircr": "IRCR",
+              "rrd": "RRD", "bc": "BC", "gail": "GAIL", "pofd": "POfD"}
+
+
+def differences(config, defaults):
+    """The learner flags of a sail.py run's config that differ from `defaults`, as words."""
+    from sail import PREDATING
+    value = {key: config.get(key, PREDATING.get(key, default)) for key, default in defaults.items()}
+    # an ablation flag that the preset sets (DAC's and TD3's no-lfd) is part of the method, not an ablation
+    flags = [name if value[flag] else f"no {name}" for flag, name in ABLATION_FLAGS.items()
+             if bool(value[flag]) != bool(defaults[flag])]
+    return flags + [setting(key, value[key]) for key, default in defaults.items()
+                    if key not in SETUP_FLAGS and key not in ABLATION_FLAGS and value[key] != default
+                    and not (key == "on_policy_from" and not value["on_policy_disc"])]  # moot without it
 
 
 def teacher_return(config):
@@ -139,7 +152,7 @@ def summarise(runs, teacher, last, early_steps):
             "reached teacher": when(reached), "first promotion": when(promoted), "early": f"{np.mean(early):.0f}"}
 
 
-PAPER_SAIL = "SAIL (return bonus 0)"  # drawn with both
+PAPER_SAIL = "SAIL-paper"  # drawn with both
 
 
 def plot_env(env_id, num_demos, methods, teacher, path, colors):

@@ -14,23 +14,32 @@ Algorithm 1 of the paper, as the loop in `train` runs it:
         update the discriminator D by Eq. (4): teacher R_E labelled 1, R_B labelled 0
         update the critic by Eq. (7) and the actor by Eq. (8), on batches drawn from
             alpha R_E + (1 - alpha) R_B, with the reward r'(s, a) = -log(1 - D(s, a))
-            plus beta times the scaled return of the transition's episode (see below)
+            plus the return bonus and the learned per-step reward (both below)
 
 Equation numbers are the paper's: (4) the discriminator objective, (7) the critic's squared TD
 error and (8) the deterministic policy gradient on the mixed batch. The paper's ablations are
-flags (--fixed-alpha, --no-lfd, --no-adaptation, --on-policy-disc); DAC and TD3 on the sparse
-reward are presets of the same loop (--algo dac, td3); behaviour cloning is bc.py.
+flags (--fixed-alpha, --no-lfd, --no-adaptation, --on-policy-from start); DAC and TD3 on the
+sparse reward are presets of the same loop (--algo dac, td3); behaviour cloning is bc.py.
 
-One addition to the paper, on by default: the return bonus (--return-bonus, beta = 1). D's
-reward only says "look like R_E", so once the agent does, only a lucky noisy episode that
-beats R_E's worst moves it on. The bonus credits every transition with its episode's return
-scaled to [0, 1] (IRCR's guidance reward, Gangwani et al. 2020), which tells the critic which
-of the agent's own episodes were better. It uses only what the sparse env gives at an episode's
-end. --return-bonus 0 is the paper's SAIL; README's Results compare the two.
-
-A second addition, off by default: --return-decomposition learns a per-step reward r(s, a, s')
-whose sum over an episode fits its episodic return (RRD, Ren et al. 2022), a credit that,
-unlike the bonus, differs between the steps of one episode.
+sail.py's defaults add five things to the paper, each a flag that turns it off; together they
+ended above the paper's SAIL with the return bonus alone in every same-seed pair we ran
+(README's Results).
+`--algo sail-paper` is the paper's SAIL, exactly.
+- The return bonus (--return-bonus, beta = 1). D's reward only says "look like R_E", so once the
+  agent does, only a lucky noisy episode that beats R_E's worst moves it on. The bonus credits
+  every transition with its episode's return scaled to [0, 1] (IRCR's guidance reward,
+  Gangwani et al. 2020), which tells the critic which of the agent's own episodes were better.
+- The return decomposition (--return-decomposition, --decomposition-unit rate): a per-step
+  reward r(s, a, s') learned so that its sum over an episode fits the episodic return (RRD,
+  Ren et al. 2022), a credit that, unlike the bonus, differs between the steps of one episode.
+- LayerNorm in the critics (--critic-layer-norm, as RLPD), against Q values that run away from
+  the data on the large rewards of a learned D.
+- An on-policy D once the agent improves on its teacher (--on-policy-disc, --on-policy-from
+  promotion): after the first promotion D tells R_E from the agent's recent steps, not from all
+  of R_B, whose old, poor steps it would keep rewarding the agent for being unlike.
+- D's actions normalised as its states (--disc-action-norm), so that D sees how much control
+  the agent spends and not only where it goes.
+All of them use only what the sparse env gives at an episode's end.
 """
 
 import signal
@@ -59,20 +68,27 @@ from evaluate import evaluate_run, save_model
 from plumbing import ConfigError, non_negative_float, positive_int
 from td3 import TD3, colored_noise, make_adam, mlp
 
-# Presets of --algo: each sets defaults that explicit flags still override.
+# Presets of --algo: each sets defaults that explicit flags still override. sail.py's own defaults are
+# SAIL with this repo's additions (the module docstring); the others keep the published methods'
+# plain TD3 learner and off-policy D, whatever those defaults become.
+PLAIN_LEARNER = {"critic_layer_norm": False, "on_policy_disc": False, "on_policy_from": "start",
+                 "return_decomposition": 0.0, "decomposition_unit": "range", "disc_action_norm": False}
 PRESETS = {
     "sail": {},
+    # the paper's SAIL, Algorithm 1 as published: none of this repo's additions
+    "sail-paper": PLAIN_LEARNER | {"return_bonus": 0.0},
     # DAC (Kostrikov et al. 2019): absorbing states, AIRL-style reward, no mixing, no adaptation
-    "dac": {"absorbing": True, "time_feature": False, "reward": "airl", "no_lfd": True, "no_adaptation": True,
-            "return_bonus": 0.0},
+    "dac": PLAIN_LEARNER | {"absorbing": True, "time_feature": False, "reward": "airl", "no_lfd": True,
+                            "no_adaptation": True, "return_bonus": 0.0},
     # TD3 on the sparse episodic reward alone: no demos, no discriminator
-    "td3": {"reward": "env", "no_lfd": True, "no_adaptation": True, "return_bonus": 0.0},
+    "td3": PLAIN_LEARNER | {"reward": "env", "no_lfd": True, "no_adaptation": True, "return_bonus": 0.0},
     # IRCR (Gangwani et al. 2020): TD3 on the return bonus alone (each step credited with its episode's
     # scaled return); no demos, no discriminator: what the bonus can learn without imitation
-    "ircr": {"reward": "none", "no_lfd": True, "no_adaptation": True},
+    "ircr": PLAIN_LEARNER | {"reward": "none", "no_lfd": True, "no_adaptation": True},
     # RRD (Ren et al. 2022): TD3 on a learned per-step reward whose sum over an episode fits its
     # episodic return; no demos, no discriminator
-    "rrd": {"reward": "none", "no_lfd": True, "no_adaptation": True, "return_bonus": 0.0, "return_decomposition": 1.0},
+    "rrd": PLAIN_LEARNER | {"reward": "none", "no_lfd": True, "no_adaptation": True, "return_bonus": 0.0,
+                            "return_decomposition": 1.0},
 }
 CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "eval_return_actor", "eval_return_target",
                "train_episodic_return", "teacher_threshold", "teacher_episodes", "promotions", "alpha", "disc_loss",
@@ -140,8 +156,8 @@ def parse_args(argv=None):
     g.add_argument("--buffer-size", type=positive_int, default=1_000_000, help="capacity of R_B in transitions")
     g.add_argument("--n-step", type=positive_int, default=1, help="the critic's target sums the rewards of up to "
                    "N consecutive steps of the transition's episode before it bootstraps (n-step returns); 1 is TD3's")
-    g.add_argument("--critic-layer-norm", action="store_true", help="LayerNorm before each hidden ReLU of the "
-                   "critics (as RLPD), against Q values that run away from the data")
+    g.add_argument("--critic-layer-norm", action=argparse.BooleanOptionalAction, default=True, help="LayerNorm "
+                   "before each hidden ReLU of the critics (as RLPD), against Q values that run away from the data")
     g.add_argument("--bc-weight", type=non_negative_float, default=0.0, help="behaviour cloning of R_E in the "
                    "actor's loss, as TD3+BC: Q over its mean magnitude plus this weight times the mean squared "
                    "distance to R_E's actions (TD3+BC's alpha 2.5 is 0.4); 0: off")
@@ -165,11 +181,11 @@ def parse_args(argv=None):
     g.add_argument("--return-scale", choices=["minmax", "rank"], default="minmax", help="how --return-bonus "
                    "scales an episodic return to [0, 1]: minmax = between the lowest and highest returns seen "
                    "(IRCR); rank = the share of R_B's finished transitions whose episode scored no higher")
-    g.add_argument("--return-decomposition", type=non_negative_float, default=0.0, help="adds this weight times "
+    g.add_argument("--return-decomposition", type=non_negative_float, default=1.0, help="adds this weight times "
                    "a learned per-step reward r(s, a, s'), fitted so that an episode's steps sum to its episodic "
-                   "return (randomized return decomposition, Ren et al. 2022), divided by the range of returns "
-                   "seen per step of the env's time limit, to the critic reward; 0: off (rrd: 1)")
-    g.add_argument("--decomposition-unit", choices=["range", "rate"], default="range", help="what the learned "
+                   "return (randomized return decomposition, Ren et al. 2022), divided by --decomposition-unit, to "
+                   "the critic reward; 0: off (sail-paper, dac, td3, ircr: 0)")
+    g.add_argument("--decomposition-unit", choices=["range", "rate"], default="rate", help="what the learned "
                    "reward is divided by: range = the range of episodic returns seen over the env's time limit; rate "
                    "= the range of per-step returns (return / length) seen: the same where every episode runs to the "
                    "limit, a larger unit where episodes end early, where range's unit lets r outweigh D's reward")
@@ -192,9 +208,9 @@ def parse_args(argv=None):
     g.add_argument("--disc-batch-size", type=positive_int, default=256, help="teacher and self samples per minibatch")
     g.add_argument("--grad-penalty", type=non_negative_float, default=10.0, help="gradient penalty weight")
     g.add_argument("--entropy-coef", type=non_negative_float, default=0.01, help="Bernoulli entropy bonus weight")
-    g.add_argument("--disc-action-norm", action="store_true", help="normalise D's actions as its states, by their "
-                   "running mean and variance (default: the actions as they are, which D, under the gradient "
-                   "penalty, hardly looks at)")
+    g.add_argument("--disc-action-norm", action=argparse.BooleanOptionalAction, default=True, help="normalise D's "
+                   "actions as its states, by their running mean and variance (--no-disc-action-norm: the actions as "
+                   "they are, as the paper, which D, under the gradient penalty, hardly looks at)")
 
     g = p.add_argument_group("SAIL and its ablations")
     g.add_argument("--alpha", type=float, default=0.5, help="initial share of teacher samples in batches")
@@ -205,13 +221,14 @@ def parse_args(argv=None):
     g.add_argument("--fixed-alpha", action="store_true", help="ablation: alpha stays at --alpha")
     g.add_argument("--no-lfd", action="store_true", help="ablation: alpha = 0 always (no teacher samples)")
     g.add_argument("--no-adaptation", action="store_true", help="ablation: R_E is never updated")
-    g.add_argument("--on-policy-disc", action="store_true",
-                   help="ablation: D's negatives are the most recent samples, not the whole R_B")
+    g.add_argument("--on-policy-disc", action=argparse.BooleanOptionalAction, default=True,
+                   help="D's negatives are the most recent samples, not the whole R_B, from --on-policy-from on "
+                        "(--no-on-policy-disc: the whole R_B always, as the paper's SAIL)")
     g.add_argument("--on-policy-window", type=positive_int, default=2_000,
                    help="recent transitions that --on-policy-disc draws negatives from")
-    g.add_argument("--on-policy-from", choices=["start", "promotion"], default="start",
-                   help="when --on-policy-disc starts: from the start (the paper's ablation), or from the first "
-                        "promotion, before which D sees the whole R_B as the paper's SAIL")
+    g.add_argument("--on-policy-from", choices=["start", "promotion"], default="promotion",
+                   help="when --on-policy-disc starts: from the first promotion, before which D sees the whole R_B "
+                        "as the paper's SAIL; or from the start (the paper's on-policy ablation)")
 
     argv = sys.argv[1:] if argv is None else argv
     p.set_defaults(**PRESETS[p.parse_known_args(argv)[0].algo])
@@ -236,7 +253,7 @@ def check_args(p, args):
     if args.reward == "none" and args.return_bonus <= 0 and args.return_decomposition <= 0:
         p.error("--reward none leaves the critic only the return bonus or decomposition: give --return-bonus > 0 "
                 "or --return-decomposition > 0")
-    if args.on_policy_from != "start" and not args.on_policy_disc:
+    if "on_policy_from" in args.given and not args.on_policy_disc:
         p.error(f"--on-policy-from {args.on_policy_from} goes with --on-policy-disc")
     if args.bc_weight > 0 and args.reward not in ("sail", "airl"):
         p.error(f"--bc-weight clones R_E's actions: --reward {args.reward} learns without demos")

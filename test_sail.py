@@ -714,6 +714,7 @@ def test_auto_kernels_choose_without_touching_the_run_rng_and_keep_the_networks_
 import csv  # noqa: E402
 import json  # noqa: E402
 
+import sail  # noqa: E402
 from sail import (CSV_COLUMNS, Discriminator, RewardModel, decomposition_unit, discriminator_loss,  # noqa: E402
                   scale_returns, shaped_reward, td3_update, train_reward_model)
 
@@ -788,17 +789,17 @@ def test_discriminator_rewards_teacher_data_more_after_training():
 
 SMOKE = {
     "sail": [],
+    "sail-paper": ["--algo", "sail-paper"],
     "fixed-alpha": ["--fixed-alpha"],
     "no-lfd": ["--no-lfd"],
     "no-adaptation": ["--no-adaptation", "--kernels", "torch"],
-    "on-policy-disc": ["--on-policy-disc", "--kernels", "torch"],
+    "on-policy-disc": ["--on-policy-from", "start", "--kernels", "torch"],  # the paper's on-policy ablation
     # D's negatives from the whole R_B until the first promotion (never, without adaptation), then recent ones
     "on-policy-from-promotion": ["--on-policy-disc", "--on-policy-from", "promotion", "--kernels", "torch"],
     "on-policy-from-promotion-no-adaptation": ["--on-policy-disc", "--on-policy-from", "promotion", "--no-adaptation",
                                                "--kernels", "torch"],
     # with both regularisers of the actor's loss, and D on normalised actions
-    "anneal": ["--alpha-anneal-steps", "500", "--bc-weight", "0.4", "--action-l2", "0.1", "--action-budget", "teacher",
-               "--disc-action-norm"],
+    "anneal": ["--alpha-anneal-steps", "500", "--bc-weight", "0.4", "--action-l2", "0.1", "--action-budget", "teacher"],
     "no-return-bonus": ["--return-bonus", "0"],
     "return-rank": ["--return-scale", "rank"],
     "dac": ["--algo", "dac"],
@@ -806,10 +807,9 @@ SMOKE = {
     "ircr": ["--algo", "ircr"],
     "rrd": ["--algo", "rrd", "--decomposition-subset", "16"],
     # with n-step returns, which sum the decomposition's and D's rewards over 3 steps
-    "decomposition": ["--return-decomposition", "1", "--decomposition-subset", "16", "--decomposition-unit", "rate",
-                      "--n-step", "3"],
-    # as RLPD: layer-normed critics and 2 updates per env step
-    "critic-layer-norm": ["--critic-layer-norm", "--kernels", "onednn", "--utd", "2"],
+    "decomposition": ["--decomposition-subset", "16", "--decomposition-unit", "range", "--n-step", "3"],
+    # as RLPD: 2 updates per env step (with the default layer-normed critics)
+    "utd2": ["--kernels", "onednn", "--utd", "2"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
 }
 
@@ -1126,7 +1126,7 @@ def test_on_policy_disc_from_the_first_promotion(smoke_runs):
     assert promoted == learning("on-policy-disc")
     assert learning("on-policy-from-promotion-no-adaptation") == learning("no-adaptation")
     assert learning("no-adaptation") != learning("on-policy-disc")
-    proc = run_script("sail.py", "--on-policy-from", "promotion", "--total-timesteps", "10")
+    proc = run_script("sail.py", "--no-on-policy-disc", "--on-policy-from", "promotion", "--total-timesteps", "10")
     assert_one_line_error(proc)
     assert "--on-policy-from promotion goes with --on-policy-disc" in proc.stderr
 
@@ -1151,7 +1151,7 @@ def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
         return
     assert "sail.py" in config["command"] and config["total_timesteps"] == 1200
     assert [int(r["global_step"]) for r in rows] == [400, 800, 1200]
-    assert int(rows[-1]["updates"]) == (2 * 401 if name == "critic-layer-norm" else 401)  # --utd 2 there
+    assert int(rows[-1]["updates"]) == (2 * 401 if name == "utd2" else 401)  # --utd 2 there
     alphas = [float(r["alpha"]) for r in rows]
     if name in ("no-lfd", "dac", "td3", "ircr", "rrd"):
         assert alphas == [0.0] * 3
@@ -1159,7 +1159,7 @@ def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
         assert alphas == [0.5] * 3
     if name in ("no-adaptation", "on-policy-from-promotion-no-adaptation", "dac", "td3", "ircr", "rrd"):
         assert all(int(r["promotions"]) == 0 for r in rows)
-    if name in ("rrd", "decomposition"):  # the reward model trains with every TD3 update
+    if name not in ("sail-paper", "dac", "td3", "ircr"):  # the reward model trains with every TD3 update
         assert all(np.isfinite(float(r["decomposition_loss"])) for r in rows if int(r["global_step"]) >= 800)
     else:
         assert all(r["decomposition_loss"] == "nan" for r in rows)
@@ -1167,10 +1167,11 @@ def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
         assert all(r["disc_loss"] == "nan" for r in rows)
     else:
         assert 0.0 < float(rows[-1]["disc_teacher"]) < 1.0
-    if name == "critic-layer-norm":  # a LayerNorm (a weight of the hidden size) after each hidden Linear of Q1, Q2
-        critic = torch.load(run_dir / "checkpoint.pt", weights_only=True)["agent"]["critic"]
-        assert [k for k, v in critic.items() if k.endswith("weight") and v.shape == (32,)] == \
-               ["q1.net.1.weight", "q1.net.4.weight", "q2.net.1.weight", "q2.net.4.weight"]
+    # by default a LayerNorm (a weight of the hidden size) after each hidden Linear of Q1 and Q2; none in the paper's
+    critic = torch.load(run_dir / "checkpoint.pt", weights_only=True)["agent"]["critic"]
+    assert [k for k, v in critic.items() if k.endswith("weight") and v.shape == (32,)] == \
+           ([] if name in ("sail-paper", "dac", "td3", "ircr", "rrd") else
+            ["q1.net.1.weight", "q1.net.4.weight", "q2.net.1.weight", "q2.net.4.weight"])
     if name == "dac":  # the agent acts with zero in the absorbing state, as the demos do
         buffer = torch.load(run_dir / "checkpoint.pt", weights_only=True)["self_buffer"]["data"]
         absorbing = buffer[0][:, -1] == 1.0
@@ -1661,6 +1662,22 @@ def test_a_diverging_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_p
 # plot.py
 # ---------------------------------------------------------------------------------------------
 
+DEFAULT_CONFIG = {k: v for k, v in vars(sail.parse_args([])).items() if k != "given"}  # what sail.py saves
+
+
+def test_sail_paper_is_the_defaults_with_each_addition_turned_off_and_the_baselines_keep_the_plain_learner():
+    additions_off = ["--return-bonus", "0", "--return-decomposition", "0", "--no-critic-layer-norm", "--no-on-policy-disc",
+                     "--no-disc-action-norm"]
+    paper, off = vars(sail.parse_args(["--algo", "sail-paper"])), vars(sail.parse_args(additions_off))
+    # what still differs is the preset's name and two flags that mean nothing with their addition off
+    assert {k for k in paper if k != "given" and paper[k] != off[k]} == {"algo", "on_policy_from", "decomposition_unit"}
+    assert (DEFAULT_CONFIG["return_bonus"], DEFAULT_CONFIG["return_decomposition"]) == (1.0, 1.0)
+    for algo in ("dac", "td3", "ircr", "rrd"):
+        args = sail.parse_args(["--algo", algo])
+        assert not (args.critic_layer_norm or args.on_policy_disc or args.disc_action_norm), algo
+        assert args.return_decomposition == (1.0 if algo == "rrd" else 0.0) and args.decomposition_unit == "range"
+
+
 def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_path):
     """Two seeds of made-up CSVs: the table's numbers are computed from them as README says."""
     runs = []
@@ -1670,8 +1687,7 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
                                             (1, [100, 200, 300, 400, 500, 600, 800], 1, 0.995)):  # a variant: apart
         run = tmp_path / f"Hopper-v5__sail-{num_demos}-{gamma}__{seed}"
         run.mkdir()
-        config = {"env": "Hopper-v5", "algo": "sail", "seed": seed, "num_demos": num_demos, "demos": None,
-                  "gamma": gamma, "return_bonus": 1.0}
+        config = DEFAULT_CONFIG | {"env": "Hopper-v5", "seed": seed, "num_demos": num_demos, "gamma": gamma}
         (run / "config.json").write_text(json.dumps(config))
         rows = [{k: "nan" for k in CSV_COLUMNS} | {"global_step": 10_000 * (i + 1), "eval_return": r,
                                                     "eval_return_target": r + 10 * seed if gamma == 0.99 else "nan",
@@ -1705,17 +1721,24 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
                                                                          "Hopper-v5-ablations.png", "Hopper-v5.png"]
     from plot import method_name
     assert method_name({"algo": "gail", "gamma": 0.995}) == "GAIL"  # gail.py's own default, not a variant
-    assert method_name({"algo": "sail", "return_bonus": 1.0}) == "SAIL"
-    assert method_name({"algo": "sail", "return_bonus": 1.0, "return_scale": "rank"}) == "SAIL (return scale rank)"
-    assert method_name({"algo": "sail", "return_bonus": 0.0, "gamma": 0.99}) == "SAIL (return bonus 0)"
-    assert method_name({"algo": "sail", "no_lfd": True}) == "SAIL (no LfD, return bonus 0)"  # made before the bonus
+    assert method_name(DEFAULT_CONFIG) == "SAIL"
+    assert method_name(DEFAULT_CONFIG | {"return_scale": "rank"}) == "SAIL (return scale rank)"
+    # a SAIL run is named from the nearer of sail.py's defaults and the paper's SAIL (--algo sail-paper)
+    assert method_name(DEFAULT_CONFIG | {"on_policy_disc": False}) == "SAIL (no on-policy D)"  # --on-policy-from moot
+    assert method_name(DEFAULT_CONFIG | {"algo": "sail-paper"}) == "SAIL"
+    assert method_name(vars(sail.parse_args(["--algo", "sail-paper", "--on-policy-disc"]))) == \
+        "SAIL-paper (on-policy D)"
+    # flags missing from an older run's config take their values from before they existed (sail.PREDATING)
+    assert method_name({"algo": "sail", "return_bonus": 0.0, "gamma": 0.99}) == "SAIL-paper"
+    assert method_name({"algo": "sail", "return_bonus": 1.0}) == "SAIL-paper (return bonus 1)"
+    assert method_name({"algo": "sail", "no_lfd": True}) == "SAIL-paper (no LfD)"  # made before the bonus
     assert method_name({"algo": "dac"}) == method_name({"algo": "dac", "return_bonus": 0.0}) == "DAC"
     # any learner flag off its default names a variant; how a run was set up or stored does not
-    assert method_name({"algo": "sail", "return_bonus": 1.0, "exploration_noise": 0.0}) == "SAIL (exploration noise 0)"
-    assert method_name({"algo": "sail", "return_bonus": 1.0, "time_feature": False, "hidden": [64, 64]}) == \
+    assert method_name(DEFAULT_CONFIG | {"exploration_noise": 0.0}) == "SAIL (exploration noise 0)"
+    assert method_name(DEFAULT_CONFIG | {"time_feature": False, "hidden": [64, 64]}) == \
         "SAIL (hidden 64 64, no time feature)"
-    assert method_name({"algo": "sail", "return_bonus": 1.0, "seed": 3, "threads": 1, "total_timesteps": 5,
-                        "output_dir": "elsewhere", "checkpoint_freq": 7, "num_demos": 4}) == "SAIL"
+    assert method_name(DEFAULT_CONFIG | {"seed": 3, "threads": 1, "total_timesteps": 5, "output_dir": "elsewhere",
+                                         "checkpoint_freq": 7, "num_demos": 4}) == "SAIL"
 
 
 # ---------------------------------------------------------------------------------------------

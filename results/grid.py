@@ -32,11 +32,15 @@ def grid(envs, methods, seeds):
             for seed in seeds for env in envs for method, (script, flags) in methods.items()]
 
 
-PAPER = [*OFF_POLICY, "--return-bonus", "0"]  # the paper's SAIL: sail.py without its return bonus
-SAIL = ("sail.py", [*OFF_POLICY, "--return-bonus", "1"])  # sail.py's defaults, the bonus written out
+PAPER = [*OFF_POLICY, "--algo", "sail-paper"]  # the paper's SAIL
+# the paper's SAIL with the return bonus, the base that each variant below adds its flags to
+BONUS = ("sail.py", [*PAPER, "--return-bonus", "1"])
+# sail.py's defaults, written out as flags on that base
+DEFAULT_FLAGS = ["--critic-layer-norm", "--on-policy-disc", "--on-policy-from", "promotion",
+                 "--return-decomposition", "1", "--decomposition-unit", "rate", "--disc-action-norm"]
 DAC = ("sail.py", [*OFF_POLICY, "--algo", "dac"])
-# the layer-normed critics with the on-policy D from the first promotion (two grids build on it)
-LN_ONPOLICY_PROMOTION = [*OFF_POLICY, "--critic-layer-norm", "--on-policy-disc", "--on-policy-from", "promotion"]
+# the layer-normed critics with the on-policy D from the first promotion (several grids build on it)
+LN_ONPOLICY_PROMOTION = [*BONUS[1], *DEFAULT_FLAGS[:4]]
 GRIDS = {
     # the runs behind README's tables of the paper's methods (300k env steps, 1 teacher episode)
     "evidence": (
@@ -55,81 +59,81 @@ GRIDS = {
     "on-policy": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5"],
                       {"gail": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1"]),
                        "pofd": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1", "--pofd"])}, [1, 2, 3]),
-    # SAIL with its defaults (the return bonus on) and DAC, five envs, 3 seeds, 300k env steps
+    # the paper's SAIL with the return bonus, and DAC, five envs, 3 seeds, 300k env steps
     "learning": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                     {"sail-return1": SAIL, "dac": DAC}, [1, 2, 3]),
-    # a longer horizon (gamma 0.995), so that a fall ~130 steps ahead weighs on Q: the paper's SAIL, and SAIL
-    # with its defaults (on Ant-v5, where flips end or ruin 10-30% of the evaluation episodes)
+                     {"sail-return1": BONUS, "dac": DAC}, [1, 2, 3]),
+    # a longer horizon (gamma 0.995), so that a fall ~130 steps ahead weighs on Q: the paper's SAIL, and with
+    # the return bonus (on Ant-v5, where flips end or ruin 10-30% of the evaluation episodes)
     "learning-gamma": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                            {"sail-gamma0.995": ("sail.py", [*PAPER, "--gamma", "0.995"]),
-                            "sail-return1-gamma0.995": ("sail.py", [*SAIL[1], "--gamma", "0.995"])}, [1, 2, 3]),
+                            "sail-return1-gamma0.995": ("sail.py", [*BONUS[1], "--gamma", "0.995"])}, [1, 2, 3]),
     # the return bonus with each return scaled by its rank among R_B's (a percentile), not by the lowest and highest
     "learning-return-rank": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                                 {"sail-return1-rank": ("sail.py", [*SAIL[1], "--return-scale", "rank"])}, [1, 2, 3]),
+                                 {"sail-return1-rank": ("sail.py", [*BONUS[1], "--return-scale", "rank"])}, [1, 2, 3]),
     # a stronger return bonus (3x), against the minmax squeeze: D's reward otherwise outweighs it among good episodes
     "learning-return3": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                             {"sail-return3": ("sail.py", [*OFF_POLICY, "--return-bonus", "3"])}, [1, 2, 3]),
+                             {"sail-return3": ("sail.py", [*BONUS[1], "--return-bonus", "3"])}, [1, 2, 3]),
     # no exploration noise (the authors' HalfCheetah setting), so that training episodes score as the
     # deterministic policy does and can beat the promotion bar (Ant-v5 noisy episodes never did)
     "learning-noise0": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                            {"sail-noise0": ("sail.py", [*SAIL[1], "--exploration-noise", "0"])}, [1, 2, 3]),
+                            {"sail-noise0": ("sail.py", [*BONUS[1], "--exploration-noise", "0"])}, [1, 2, 3]),
     # IRCR: the return bonus alone, without teacher or discriminator (what SAIL's imitation adds to it)
     "learning-ircr": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
                           {"ircr": ("sail.py", [*OFF_POLICY, "--algo", "ircr"])}, [1, 2, 3]),
-    # return decomposition (RRD): a learned per-step reward on top of SAIL's defaults (weights 1 and 3), and alone
+    # return decomposition (RRD): a learned per-step reward on top of the bonus base (weights 1 and 3), and alone
     "learning-rrd": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                         {"sail-rrd1": ("sail.py", [*OFF_POLICY, "--return-decomposition", "1"]),
-                          "sail-rrd3": ("sail.py", [*OFF_POLICY, "--return-decomposition", "3"]),
-                          "sail-rrd1-rate": ("sail.py", [*OFF_POLICY, "--return-decomposition", "1",
+                         {"sail-rrd1": ("sail.py", [*BONUS[1], "--return-decomposition", "1"]),
+                          "sail-rrd3": ("sail.py", [*BONUS[1], "--return-decomposition", "3"]),
+                          "sail-rrd1-rate": ("sail.py", [*BONUS[1], "--return-decomposition", "1",
                                                          "--decomposition-unit", "rate"]),
                           "rrd": ("sail.py", [*OFF_POLICY, "--algo", "rrd"])}, [1, 2, 3]),
-    # the authors' released networks and step size (400-300 hidden units, Adam lr 1e-3), on top of SAIL's defaults
+    # the authors' released networks and step size (400-300 hidden units, Adam lr 1e-3), on top of the bonus base
     "learning-authors": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                             {"sail-authors": ("sail.py", [*OFF_POLICY, "--lr", "0.001", "--hidden", "400", "300"])},
+                             {"sail-authors": ("sail.py", [*BONUS[1], "--lr", "0.001", "--hidden", "400", "300"])},
                              [1, 2, 3]),
-    # LayerNorm in the critics (as RLPD), on top of SAIL's defaults
+    # LayerNorm in the critics (as RLPD), on top of the bonus base
     "learning-ln": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                        {"sail-ln": ("sail.py", [*OFF_POLICY, "--critic-layer-norm"])}, [1, 2, 3]),
+                        {"sail-ln": ("sail.py", [*BONUS[1], "--critic-layer-norm"])}, [1, 2, 3]),
     # what R_E keeps: its best 2 episodes of 1000 steps instead of 10 (the threshold is then the second
     # best return seen), on top of the LayerNorm critics, whose HalfCheetah run stalled with a full R_E
     "learning-teacher-capacity": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                                      {"sail-ln-cap2000": ("sail.py", [*OFF_POLICY, "--critic-layer-norm",
+                                      {"sail-ln-cap2000": ("sail.py", [*BONUS[1], "--critic-layer-norm",
                                                                        "--teacher-capacity", "2000"])},
                                       [1, 2, 3]),
     # the LayerNorm critics (fastest start) together with the rate-unit return decomposition (largest
-    # HalfCheetah and Swimmer gains), on top of SAIL's defaults
+    # HalfCheetah and Swimmer gains), on top of the bonus base
     "learning-ln-rrd": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                            {"sail-ln-rrd1-rate": ("sail.py", [*OFF_POLICY, "--critic-layer-norm",
+                            {"sail-ln-rrd1-rate": ("sail.py", [*BONUS[1], "--critic-layer-norm",
                                                                "--return-decomposition", "1",
                                                                "--decomposition-unit", "rate"])}, [1, 2, 3]),
-    # n-step returns (3 steps) on top of SAIL's defaults: a termination or a good stretch reaches the
+    # n-step returns (3 steps) on top of the bonus base: a termination or a good stretch reaches the
     # critic's target three steps sooner (Ant-v5's agent saw its early ends only a few steps ahead)
     "learning-n-step": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                            {"sail-n3": ("sail.py", [*OFF_POLICY, "--n-step", "3"])}, [1, 2, 3]),
+                            {"sail-n3": ("sail.py", [*BONUS[1], "--n-step", "3"])}, [1, 2, 3]),
     # RLPD's recipe on top of the layer norm and decomposition pair: two TD3 updates per env step
     "learning-utd2": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                          {"sail-ln-rrd1-rate-utd2": ("sail.py", [*OFF_POLICY, "--critic-layer-norm",
+                          {"sail-ln-rrd1-rate-utd2": ("sail.py", [*BONUS[1], "--critic-layer-norm",
                                                                   "--return-decomposition", "1",
                                                                   "--decomposition-unit", "rate", "--utd", "2"])},
                           [1, 2, 3]),
-    # behaviour cloning of R_E in TD3+BC's form on top of SAIL's defaults, at TD3+BC's weight
+    # behaviour cloning of R_E in TD3+BC's form on top of the bonus base, at TD3+BC's weight
     "learning-bc": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                        {"sail-bc0.4": ("sail.py", [*OFF_POLICY, "--bc-weight", "0.4"])}, [1, 2, 3]),
-    # a quadratic penalty on the actor's actions on top of SAIL's defaults: Ant-v5's actors run about 1.3 times as
+                        {"sail-bc0.4": ("sail.py", [*BONUS[1], "--bc-weight", "0.4"])}, [1, 2, 3]),
+    # a quadratic penalty on the actor's actions on top of the bonus base: Ant-v5's actors run about 1.3 times as
     # far as its teacher but pay 1.8 times its control cost, which the sparse reward charges only at an episode's end
     "learning-action-l2": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                               {"sail-al2-0.03": ("sail.py", [*OFF_POLICY, "--action-l2", "0.03"])}, [1, 2, 3]),
+                               {"sail-al2-0.03": ("sail.py", [*BONUS[1], "--action-l2", "0.03"])}, [1, 2, 3]),
     # pink exploration noise (Eberhard et al. 2023), so that whole episodes differ and the ratchet has better ones to keep
     "learning-pink": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                          {"sail-pink": ("sail.py", [*OFF_POLICY, "--noise-beta", "1"])}, [1, 2, 3]),
-    # D's negatives from the 2000 most recent transitions (the paper's SAIL-OnPolicy ablation) on top of SAIL's
-    # defaults: once the agent matches R_E, recent steps against R_E's best episodes is the contrast that pushes on
+                          {"sail-pink": ("sail.py", [*BONUS[1], "--noise-beta", "1"])}, [1, 2, 3]),
+    # D's negatives from the 2000 most recent transitions (the paper's SAIL-OnPolicy ablation) on top of the bonus
+    # base: once the agent matches R_E, recent steps against R_E's best episodes is the contrast that pushes on
     "learning-onpolicy": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                              {"sail-onpolicy": ("sail.py", [*OFF_POLICY, "--on-policy-disc"])}, [1, 2, 3]),
+                              {"sail-onpolicy": ("sail.py", [*BONUS[1], "--on-policy-disc"])}, [1, 2, 3]),
     # the same with D's negatives from the whole R_B until the first promotion: the on-policy D slowed the
     # imitation phase (HalfCheetah-v5 seed 1: D 0.93 / 0.07 at 40k-50k steps, returns near -500 to 100k)
     "learning-onpolicy-promotion": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                                        {"sail-onpolicy-promotion": ("sail.py", [*OFF_POLICY, "--on-policy-disc",
+                                        {"sail-onpolicy-promotion": ("sail.py", [*BONUS[1], "--on-policy-disc",
                                                                                  "--on-policy-from", "promotion"])},
                                         [1, 2, 3]),
     # the two phases' fixes together: LayerNorm critics (the imitation phase reached the teacher at 60-70k steps on
@@ -164,9 +168,7 @@ GRIDS = {
     # control costs; an action penalty did, but held back the envs whose better gaits spend more
     "learning-disc-action-norm": grid(
         ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-        {"sail-ln-onpolicy-promotion-rrd1-rate-dan": ("sail.py", [
-            *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate",
-            "--disc-action-norm"])}, [1, 2, 3]),
+        {"sail-ln-onpolicy-promotion-rrd1-rate-dan": ("sail.py", [*OFF_POLICY, *DEFAULT_FLAGS])}, [1, 2, 3]),
     # the same with a learned quadratic action cost in the decomposition's reward (--decomposition-action-cost): on
     # Ant-v5 D stayed blind to the actions' size even so, and the per-step reward model learned about a fifth of
     # what they cost (results/rrd_probe.py); refitted with the explicit term on the same R_B it learned c = 0.385
@@ -178,14 +180,19 @@ GRIDS = {
             "--disc-action-norm", "--decomposition-action-cost"])}, [1, 2, 3]),
     # Ant-v5 without its 78 contact forces in the observation (27 entries, Ant-v4's default; the paper's Ant-v2
     # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
-    "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*OFF_POLICY, "--no-contact-forces"])},
+    "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*BONUS[1], "--no-contact-forces"])},
                                 [1, 2, 3]),
-    # SAIL with its defaults for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
-    # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
+    # sail.py's defaults for 1M env steps
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
-                 {"sail-return1-1M": ("sail.py", ["--total-timesteps", "1000000", "--threads", "1",
-                                              "--checkpoint-freq", "10000", "--return-bonus", "1"])},
-                 [1, 2, 3]),
+                 {"sail-1M": ("sail.py", ["--total-timesteps", "1000000", "--threads", "1", "--checkpoint-freq", "10000"])},
+                 [1, 2]),
+    # the bonus base for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
+    # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
+    "long-bonus": grid(["Walker2d-v5", "HalfCheetah-v5"],
+                       {"sail-return1-1M": ("sail.py", ["--total-timesteps", "1000000", "--threads", "1",
+                                                    "--checkpoint-freq", "10000", "--algo", "sail-paper",
+                                                    "--return-bonus", "1"])},
+                       [1, 2, 3]),
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
                        {"sail-4demos": ("sail.py", [*PAPER, "--num-demos", "4"]),
