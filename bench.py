@@ -3,14 +3,15 @@
     python bench.py                      # Walker2d-v5 sizes, 2 threads, about a minute
     python bench.py --threads 1
 
-Four measurements, each in this one process, so that both loops see the same machine state:
+Four measurements, each in this one process, so that both loops see the same machine state (SAIL
+here is the paper's, --algo sail-paper, without the additions sail.py has on by default):
   1. the compute limit: GFLOP/s of a 256x256x256 float32 matmul, through torch.mm (MKL) and
      through oneDNN (cpu_kernels.linear), and the FLOPs of one SAIL update;
   2. updates on the same random data: the plain TD3 update against SAIL's update (TD3 step,
      discriminator reward of the batch, discriminator training amortised over --disc-freq),
      with each of sail.py's CPU kernels (--kernels torch, onednn) and the one `auto` picks;
   3. end-to-end on the real env: env steps/s after the warm-up, the plain loop against
-     sail.py itself with --kernels auto, its default (its progress.csv excludes evaluation);
+     sail.py itself with --algo sail-paper --kernels auto (its progress.csv excludes evaluation);
   4. peak memory: a Walker2d run's state with a full 1M-transition self buffer, a checkpoint
      written from it.
 The plain loop is CleanRL's td3_continuous_action.py reduced to its update: two nn.Linear
@@ -162,8 +163,10 @@ def update_flops(obs_dim, act_dim, hidden, batch_size, discriminator=True, polic
 
 
 def bench_args(args, env_id, output_dir, total, kernels="auto"):
-    return sail.parse_args(["--env", env_id, "--threads", str(args.threads), "--hidden", str(args.hidden),
-                            str(args.hidden), "--disc-hidden", str(args.hidden), str(args.hidden),
+    # the paper's SAIL: the TD3 update and D alone, as the plain loop's like; sail.py's default additions
+    # (the return decomposition's reward model above all) cost more, README's Speed says how much
+    return sail.parse_args(["--algo", "sail-paper", "--env", env_id, "--threads", str(args.threads),
+                            "--hidden", str(args.hidden), str(args.hidden), "--disc-hidden", str(args.hidden), str(args.hidden),
                             "--batch-size", str(args.batch_size), "--learning-starts", str(args.warmup),
                             "--total-timesteps", str(total), "--eval-freq", str(args.warmup),
                             "--eval-episodes", "1", "--output-dir", output_dir, "--checkpoint-freq", str(10**9),
