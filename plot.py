@@ -88,11 +88,12 @@ def method_name(config):
     """The paper's name of what a run trained: its --algo, plus the ablation flags it set and every
     other learner flag that differs from its preset's default in sail.py today (a flag missing from
     an older run's config takes the value it had before the flag existed: sail.PREDATING). A SAIL
-    run is named from whichever of sail.py's defaults and the paper's SAIL it is nearer to."""
+    run is named from whichever of sail.py's defaults and the paper's SAIL it is nearer to (the
+    paper's where it is as near to both)."""
     from sail import PRESETS
     if config["algo"] not in PRESETS:  # gail.py and bc.py have defaults of their own
         return ALGO_NAMES[config["algo"]]
-    presets = ("sail", "sail-paper") if config["algo"] in ("sail", "sail-paper") else (config["algo"],)
+    presets = ("sail-paper", "sail") if config["algo"] in ("sail", "sail-paper") else (config["algo"],)  # ties: paper
     name, flags = min(((ALGO_NAMES[algo], differences(config, preset_defaults(algo))) for algo in presets),
                       key=lambda named: len(named[1]))
     return f"{name} ({', '.join(flags)})" if flags else name
