@@ -11,7 +11,8 @@ Algorithm 1 of the paper, as the loop in `train` runs it:
         act with the TD3 actor plus noise; R_B <- R_B + (s, a, s')
         if an episode tau just ended and r_e(tau) > min over R_E of r_e:  R_E <- R_E + tau
             (the whole episode), and anneal alpha -> 0
-        update the discriminator D by Eq. (4): teacher R_E labelled 1, R_B labelled 0
+        update the discriminator D by Eq. (4): teacher R_E labelled 1, R_B labelled 0 (by
+            default, once an episode has been promoted, R_B's most recent steps)
         update the critic by Eq. (7) and the actor by Eq. (8), on batches drawn from
             alpha R_E + (1 - alpha) R_B, with the reward r'(s, a) = -log(1 - D(s, a))
             plus the return bonus and the learned per-step reward (both below)
