@@ -1223,6 +1223,16 @@ def straight_run(tmp_path_factory, poor_hopper_demos):
     return out / "a"
 
 
+@pytest.fixture(scope="module")
+def straight_paper_run(tmp_path_factory, poor_hopper_demos):
+    """The same run of the paper's SAIL: no return decomposition, plain critics."""
+    out = tmp_path_factory.mktemp("straight_paper")
+    proc = run_script("sail.py", *RESUME_FLAGS, "--algo", "sail-paper", "--demos", poor_hopper_demos,
+                      "--total-timesteps", "1000", "--output-dir", str(out), "--run-name", "a")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out / "a"
+
+
 def assert_same_run(run_a, run_b):
     drop = ("steps_per_second", "time")
     rows_a = [{k: v for k, v in r.items() if k not in drop} for r in read_csv(run_a)]
@@ -1275,11 +1285,13 @@ def test_resume_with_return_decomposition_equals_an_uninterrupted_run(tmp_path, 
                for r in read_csv(tmp_path / "b")[2:])  # c logged
 
 
-def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(straight_decomposition_run, straight_run):
+def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(straight_decomposition_run,
+                                                                           straight_paper_run):
     probe = os.path.join("results", "rrd_probe.py")
     proc, without, bad = run_scripts((probe, str(straight_decomposition_run), "--noise", "0", "0.1", "--refit", "8",
                                       "--refit-steps", "20"),
-                                     (probe, str(straight_run)), (probe, str(straight_decomposition_run), "--refit", "0"))
+                                     (probe, str(straight_paper_run)),
+                                     (probe, str(straight_decomposition_run), "--refit", "0"))
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.splitlines()
     scaling = [f"actions x {k}" for k in (0.0, 0.5, 1.0, 1.5)]
@@ -1359,9 +1371,9 @@ def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     assert missing.returncode == 2 and "has no config.json" in missing.stderr
 
 
-def test_checkpoint_probe_reports_q_slope_and_d(straight_run, straight_decomposition_run):
+def test_checkpoint_probe_reports_q_slope_and_d(straight_paper_run, straight_decomposition_run):
     probe = os.path.join("results", "probe.py")
-    proc, decomposition = run_scripts((probe, str(straight_run)), (probe, str(straight_decomposition_run)))
+    proc, decomposition = run_scripts((probe, str(straight_paper_run)), (probe, str(straight_decomposition_run)))
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert decomposition.returncode == 0, decomposition.stderr[-3000:]
     learned = [line for line in decomposition.stdout.splitlines()[-8:] if "transitions" in line]
@@ -1502,7 +1514,8 @@ def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos, caps
 
 
 def test_sail_surpasses_a_poor_teacher_and_the_no_adaptation_ablation_does_not(tmp_path):
-    """The point of the paper in under a minute.
+    """The point of the paper in under a minute, with the paper's SAIL (sail.py's default return
+    bonus and return decomposition learn from the episodic returns without R_E's adaptation too).
 
     Why this is a fair check: the task is sparse episodic through the same wrappers as MuJoCo
     (the learner only ever gets the episodic return at the end of a 100-step episode); the
@@ -1524,7 +1537,7 @@ def test_sail_surpasses_a_poor_teacher_and_the_no_adaptation_ablation_does_not(t
     demos = str(tmp_path / "PointMass.npz")
     save_demos(demos, episodes, env_id)
     teacher_return = episodes[0]["episodic_return"]
-    common = ["sail.py", "--env", env_id, "--demos", demos, "--total-timesteps", "10000",
+    common = ["sail.py", "--algo", "sail-paper", "--env", env_id, "--demos", demos, "--total-timesteps", "10000",
               "--learning-starts", "1000", "--eval-freq", "1000", "--eval-episodes", "3", "--disc-freq", "100",
               "--hidden", "64", "64", "--disc-hidden", "64", "64", "--threads", "1", "--seed", "1",
               "--output-dir", str(tmp_path)]
