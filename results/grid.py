@@ -182,10 +182,12 @@ GRIDS = {
     # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
     "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*BONUS[1], "--no-contact-forces"])},
                                 [1, 2, 3]),
-    # sail.py's defaults for 1M env steps
+    # sail.py's defaults for 1M env steps (a run's first 300k steps are the run of 300k with its seed: nothing
+    # in the learning depends on --total-timesteps, so a 300k run continued with --resume RUN_DIR
+    # --total-timesteps 1000000 is the same run as one started for 1M)
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
                  {"sail-1M": ("sail.py", ["--total-timesteps", "1000000", "--threads", "1", "--checkpoint-freq", "10000"])},
-                 [1, 2]),
+                 [2, 3]),
     # the bonus base for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long-bonus": grid(["Walker2d-v5", "HalfCheetah-v5"],
