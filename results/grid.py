@@ -35,12 +35,12 @@ def grid(envs, methods, seeds):
 PAPER = [*OFF_POLICY, "--algo", "sail-paper"]  # the paper's SAIL
 # the paper's SAIL with the return bonus, the base that each variant below adds its flags to
 BONUS = ("sail.py", [*PAPER, "--return-bonus", "1"])
+# the layer-normed critics with the on-policy D from the first promotion (several grids build on them)
+LN_ONPOLICY_FLAGS = ["--critic-layer-norm", "--on-policy-disc", "--on-policy-from", "promotion"]
+LN_ONPOLICY_PROMOTION = [*BONUS[1], *LN_ONPOLICY_FLAGS]
 # sail.py's defaults, written out as flags on that base
-DEFAULT_FLAGS = ["--critic-layer-norm", "--on-policy-disc", "--on-policy-from", "promotion",
-                 "--return-decomposition", "1", "--decomposition-unit", "rate", "--disc-action-norm"]
+DEFAULT_FLAGS = [*LN_ONPOLICY_FLAGS, "--return-decomposition", "1", "--decomposition-unit", "rate", "--disc-action-norm"]
 DAC = ("sail.py", [*OFF_POLICY, "--algo", "dac"])
-# the layer-normed critics with the on-policy D from the first promotion (several grids build on it)
-LN_ONPOLICY_PROMOTION = [*BONUS[1], *DEFAULT_FLAGS[:4]]
 GRIDS = {
     # the runs behind README's tables of the paper's methods (300k env steps, 1 teacher episode)
     "evidence": (
