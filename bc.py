@@ -9,14 +9,15 @@ episodic return every --eval-freq gradient steps. The run folder has the layout 
 `sail.py --evaluate RUN_DIR` read it as any other run.
 """
 
+import os
 import signal
 import sys
 
-if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, no traceback
-    signal.signal(signal.SIGINT, lambda signum, frame: sys.exit(print("bc.py: interrupted", file=sys.stderr) or 130))
+if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, no traceback. os._exit,
+    # since an exception raised in Python code that torch's C++ import calls aborts the process
+    signal.signal(signal.SIGINT, lambda signum, frame: os._exit(print("bc.py: interrupted", file=sys.stderr, flush=True) or 130))
 
 import argparse
-import os
 
 import numpy as np
 import torch

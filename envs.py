@@ -17,6 +17,12 @@ import copy
 import gymnasium as gym
 import numpy as np
 
+try:  # loaded with the scripts' imports, where Ctrl-C exits at once: an import of MuJoCo that Ctrl-C
+    # cuts short reads as ImportError, which gym.make would report as "MuJoCo is not installed"
+    import mujoco  # noqa: F401
+except ImportError:
+    pass  # make_env says so for the env that needs it
+
 from plumbing import ConfigError, first_line
 
 

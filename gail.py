@@ -14,16 +14,17 @@ fitted by Adam, gives the advantages' baseline. Policy and value see observation
 running statistics. The run folder, CSV columns, --resume and stopping are sail.py's.
 """
 
+import os
 import signal
 import sys
 
-if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, no traceback
-    signal.signal(signal.SIGINT, lambda signum, frame: sys.exit(print("gail.py: interrupted", file=sys.stderr) or 130))
+if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, no traceback. os._exit,
+    # since an exception raised in Python code that torch's C++ import calls aborts the process
+    signal.signal(signal.SIGINT, lambda signum, frame: os._exit(print("gail.py: interrupted", file=sys.stderr, flush=True) or 130))
 
 import argparse
 import dataclasses
 import math
-import os
 import time
 
 import numpy as np

@@ -14,13 +14,14 @@ existing file is only replaced with --force. Ctrl-C or SIGTERM stops the teacher
 a checkpoint (with --checkpoint), which a later run with the same --checkpoint continues.
 """
 
+import os
 import signal
 import sys
 
-if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, no traceback
-    signal.signal(signal.SIGINT, lambda signum, frame: sys.exit(print("make_demos.py: interrupted", file=sys.stderr) or 130))
+if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, no traceback. os._exit,
+    # since an exception raised in Python code that torch's C++ import calls aborts the process
+    signal.signal(signal.SIGINT, lambda signum, frame: os._exit(print("make_demos.py: interrupted", file=sys.stderr, flush=True) or 130))
 
-import os
 import time
 
 import numpy as np

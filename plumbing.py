@@ -70,6 +70,9 @@ def run_main(prog, main, argv=None):
     """Calls main(argv) and turns the ways a run can stop into exit codes, never a traceback:
     bad input is one line and exit 1, Ctrl-C outside the training loop exit 130, and a reader
     that closed stdout early (`| head`) exit 1, quietly."""
+    # from here Ctrl-C is a KeyboardInterrupt, not the scripts' import-time os._exit, so that the
+    # finally blocks and atomic writes of main still run
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         code = main(argv)
         sys.stdout.flush()  # here, so that a reader gone early is caught below, not at exit

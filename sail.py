@@ -43,16 +43,17 @@ ended above the paper's SAIL with the return bonus alone in every same-seed pair
 All of them use only what the sparse env gives at an episode's end.
 """
 
+import os
 import signal
 import sys
 
-if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, no traceback
-    signal.signal(signal.SIGINT, lambda signum, frame: sys.exit(print("sail.py: interrupted", file=sys.stderr) or 130))
+if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, no traceback. os._exit,
+    # since an exception raised in Python code that torch's C++ import calls aborts the process
+    signal.signal(signal.SIGINT, lambda signum, frame: os._exit(print("sail.py: interrupted", file=sys.stderr, flush=True) or 130))
 
 import argparse
 import dataclasses
 import math
-import os
 import time
 
 import numpy as np
