@@ -16,9 +16,10 @@ its healthy range (Ant-v5: a torso height outside [0.2, 1.0]; lying upside down 
 An episode ended early if it is shorter than the time limit (with DAC's absorbing states, one step
 longer than the fall; the absorbing state is left out of the ranges). Last, the run's own training
 episodes (those in its replay buffer R_B, played with exploration noise), per --window env steps:
-how many ended early, their lengths and the mean return; and whether the critic sees an early end
-coming: its min(Q1, Q2) at R_B's actions over the last 100k transitions, by steps to a termination,
-against the episodes that ran to the limit, with the squared action norm there.
+how many ended early, their lengths and the mean return (on Ant-v5 also how many had the ant upside
+down, and their mean return); and whether the critic sees an early end coming: its min(Q1, Q2) at
+R_B's actions over the last 100k transitions, by steps to a termination, against the episodes that
+ran to the limit, with the squared action norm there.
 """
 
 import argparse
@@ -56,6 +57,15 @@ checkpoint = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), {"agen
 policy = (lambda o: agent.act(o, target=True)) if args.target else agent.act
 
 unwrapped = env.unwrapped
+ant = config["env"].startswith("Ant")
+
+
+def upside_down(states):
+    """Ant-v5: entries 1-4 are the torso's orientation quaternion w, x, y, z; its up axis points
+    down where 1 - 2(x^2 + y^2) < 0."""
+    return 1 - 2 * (states[:, 2] ** 2 + states[:, 3] ** 2) < 0
+
+
 # the env's control cost per step is its weight times the squared action norm (gymnasium's v5 locomotion envs)
 weight = getattr(unwrapped, "_ctrl_cost_weight", float("nan"))
 returns, early, action_cost = [], 0, []
@@ -78,9 +88,8 @@ for i in range(args.episodes):
     action_cost.append((episode["actions"] ** 2).sum(-1).mean())
     early += ended_early
     ending = f"ended early, first entry {height[-1]:.2f} at the end" if ended_early else "ran to the limit"
-    if config["env"].startswith("Ant"):
-        quaternion = states[:, 1:5]
-        ending += f", {int((1 - 2 * (quaternion[:, 1] ** 2 + quaternion[:, 2] ** 2) < 0).sum())} steps upside down"
+    if ant:
+        ending += f", {int(upside_down(states).sum())} steps upside down"
     print(f"episode {i + 1}: return {returns[-1]:.1f} (forward reward {forward:.0f}, control cost "
           f"{weight * (episode['actions'] ** 2).sum():.0f}), length {len(episode['actions'])}, first entry "
           f"{height.min():.2f}-{height.max():.2f}, {ending}")
@@ -103,6 +112,9 @@ if "episode_starts" not in self_buffer:
     sys.exit(0)
 starts, first = np.unique(self_buffer["episode_starts"].numpy(), return_index=True)
 lengths, episode_returns = self_buffer["episode_lengths"].numpy()[first], self_buffer["episode_returns"].numpy()[first]
+if ant:  # steps upside down per episode, by its start
+    steps_flipped = np.bincount(self_buffer["episode_starts"].numpy(), weights=upside_down(self_buffer["data"][0].numpy()),
+                                minlength=len(self_buffer["data"][0]))[starts]
 print(f"training episodes (R_B, exploration noise {config['exploration_noise']}), by the R_B index they started at:")
 for start in range(0, int(starts.max()) + 1, args.window):
     window = (starts >= start) & (starts < start + args.window) & ~np.isnan(episode_returns)
@@ -110,8 +122,13 @@ for start in range(0, int(starts.max()) + 1, args.window):
         continue
     short = np.sort(lengths[window & (lengths < env.max_episode_steps)])
     listed = f" (lengths {', '.join(map(str, short[:10]))}{', ...' if len(short) > 10 else ''})" if len(short) else ""
+    flipped = ""
+    if ant:
+        turned = window & (steps_flipped > 0)
+        flipped = f"; {turned.sum()} with the ant upside down" + (
+            f" (their mean return {episode_returns[turned].mean():.1f})" if turned.any() else "")
     print(f"  {start}-{start + args.window}: {window.sum()} episodes, {len(short)} ended early{listed}, "
-          f"mean return {episode_returns[window].mean():.1f}")
+          f"mean return {episode_returns[window].mean():.1f}{flipped}")
 
 # Does the critic see an early end coming? Its min(Q1, Q2) at R_B's own actions over the last 100k
 # transitions, by steps to the end of episodes that ended in a termination (where the TD target is r
