@@ -101,7 +101,7 @@ CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "
 RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
 PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
-             "decomposition_unit": "range", "decomposition_action_cost": False, "n_step": 1, "utd": 1,
+             "decomposition_unit": "range", "decomposition_action_cost": False, "actor_action_cost": False, "n_step": 1, "utd": 1,
              "bc_weight": 0.0, "action_l2": 0.0, "action_budget": "none", "disc_action_norm": False, "noise_beta": 0.0,
              "contact_forces": True, "on_policy_from": "start"}
 
@@ -194,6 +194,9 @@ def parse_args(argv=None):
     g.add_argument("--decomposition-action-cost", action="store_true", help="the learned reward also subtracts "
                    "c ||a||^2, a quadratic action cost whose weight c >= 0 is learned with it from the episodic returns "
                    "(the form of gymnasium's control cost), which the network alone learns only in part")
+    g.add_argument("--actor-action-cost", action="store_true", help="the actor's loss also charges that learned "
+                   "cost, c ||a||^2 in the critic's reward unit, beside Q: its exact slope in the action, which Q, "
+                   "nearly flat in the action, carries only in part (needs --decomposition-action-cost)")
     g.add_argument("--decomposition-subset", type=positive_int, default=64, help="steps drawn from each episode "
                    "per reward-model minibatch (RRD's K); --batch-size / K episodes per minibatch")
     g.add_argument("--time-feature", action=argparse.BooleanOptionalAction, default=True, help="append 1 - t/T to obs")
@@ -264,6 +267,8 @@ def check_args(p, args):
                 "and demos (not --reward env or none)")
     if args.decomposition_action_cost and args.return_decomposition <= 0:
         p.error("--decomposition-action-cost is part of the learned reward: it needs --return-decomposition > 0")
+    if args.actor_action_cost and not args.decomposition_action_cost:
+        p.error("--actor-action-cost charges the learned action cost: it needs --decomposition-action-cost")
     if args.return_decomposition > 0 and args.decomposition_subset > args.batch_size:
         p.error(f"--decomposition-subset {args.decomposition_subset} is more than --batch-size {args.batch_size}")
     if args.buffer_size < 1001:
@@ -507,9 +512,12 @@ def td3_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_ran
         # so that the actor stays near the best behaviour seen while Q pulls it beyond
         teacher_obs, teacher_actions = (x.to(agent.device) for x in teacher_buffer.sample(args.batch_size)[:2])
         bc = (teacher_obs, teacher_actions, args.bc_weight)
+    # the learned control cost c ||a||^2 as the critic's reward carries it, charged to the actor directly
+    action_cost = (args.return_decomposition * reward_model.action_cost().detach() / decomposition_unit
+                   if args.actor_action_cost else 0.0)
     losses = agent.update(obs[:, 0], actions[:, 0], n_step_return, next_obs, terminated, next_action_mask,
                           discount=args.gamma ** (last + 1.0), bc=bc, action_l2=args.action_l2,
-                          action_budget=action_budget)
+                          action_budget=action_budget, action_cost=action_cost)
     return losses | {"reward_mean": rewards[:, 0].mean()}
 
 

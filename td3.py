@@ -148,7 +148,7 @@ class TD3:
         return np.clip(self.act(obs) + noise, low, high).astype(np.float32)
 
     def update(self, obs, actions, rewards, next_obs, terminated, next_action_mask=None, discount=None, bc=None,
-               action_l2=0.0, action_budget=0.0):
+               action_l2=0.0, action_budget=0.0, action_cost=0.0):
         """One TD3 step on a batch; `rewards` come from the caller. Returns detached losses.
 
         `terminated` is 1 only for true terminal states: a time-limit truncation is not one,
@@ -158,7 +158,9 @@ class TD3:
         and `next_obs` is the state m steps on (n-step returns). `bc` (optional: states, actions,
         weight) adds behaviour cloning of those actions to the actor's loss, `action_l2` a quadratic
         penalty on the actor's own actions: on the part of the batch's mean squared action (per
-        dimension, in units of half the range) above `action_budget`, all of it at 0.
+        dimension, in units of half the range) above `action_budget`, all of it at 0. `action_cost`
+        (a weight, in the reward's unit) charges the actor that times its squared action norm beside Q:
+        a known immediate cost of the action whose exact slope the actor gets, not Q's estimate of it.
         """
         discount = self.gamma if discount is None else discount
         with torch.no_grad():
@@ -181,6 +183,8 @@ class TD3:
             self.critic.requires_grad_(False)  # the actor's gradient passes through a fixed Q1
             policy_actions = self.actor(obs)
             q = self.critic.q1(obs, policy_actions)
+            if action_cost > 0:
+                q = q - action_cost * policy_actions.pow(2).sum(-1)
             actor_loss = -q.mean()
             # Regularisers are weighed against Q over its mean magnitude, as TD3+BC does (Fujimoto & Gu 2021),
             # so that a weight means the same whatever the reward's scale

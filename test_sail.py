@@ -827,13 +827,14 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
         torch.manual_seed(0)  # the same batch both times: the bonus draws no extra samples here
         args = argparse.Namespace(batch_size=64, reward="sail", return_bonus=bonus, return_scale="minmax",
                                   absorbing=False, return_decomposition=0.0, n_step=1, gamma=0.99, bc_weight=0.0,
-                                  action_l2=0.0)
+                                  action_l2=0.0, actor_action_cost=False)
         means[bonus] = float(td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args,
                                         return_range=(2.0, 12.0))["reward_mean"])
     assert means[2.0] - means[0.0] == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-5)
     # IRCR (--reward none): the bonus is the whole reward, D plays no part
     args = argparse.Namespace(batch_size=64, reward="none", return_bonus=2.0, return_scale="minmax", absorbing=False,
-                              return_decomposition=0.0, n_step=1, gamma=0.99, bc_weight=0.0, action_l2=0.0)
+                              return_decomposition=0.0, n_step=1, gamma=0.99, bc_weight=0.0, action_l2=0.0,
+                              actor_action_cost=False)
     ircr = td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
     assert float(ircr["reward_mean"]) == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-6)
     # return decomposition: a reward model that says 0.5 everywhere adds 3 * 0.5 / ((12 - 2) / 40) per step
@@ -891,6 +892,23 @@ def test_action_penalty_pulls_the_actor_towards_the_middle_of_its_range_against_
         final[weight] = agent.actor(obs).mean().item()
     assert final[0.0] > 1.4  # Q alone: its best action
     assert 1.0 < final[1.0] < 1.2  # the penalty outweighs Q's pull: near the middle, not at the bound 0
+
+
+def test_action_cost_moves_the_actor_to_the_best_action_of_q_minus_the_cost():
+    """Q(s, a) = -|a - 0.6|^2 per dimension: charged c |a|^2 beside it, the actor's best action is
+    0.6 / (1 + c), 0.3 for c = 1; a cost of 0 leaves it at Q's 0.6."""
+    torch.manual_seed(0)
+    obs = torch.randn(64, 3)
+    final = {}
+    for cost in (0.0, 1.0):
+        agent = TD3(obs_dim=3, act_dim=2, action_low=-np.ones(2), action_high=np.ones(2), hidden=(16, 16),
+                    policy_delay=1, lr=1e-2)
+        agent.critic.q1, agent.critic.q2 = _QuadraticQ([0.6, 0.6]), _QuadraticQ([0.6, 0.6])
+        for _ in range(200):
+            agent.update(obs, torch.zeros(64, 2), torch.zeros(64), obs, torch.zeros(64), action_cost=cost)
+        final[cost] = agent.actor(obs).mean().item()
+    assert final[0.0] == pytest.approx(0.6, abs=0.03)
+    assert final[1.0] == pytest.approx(0.3, abs=0.03)
 
 
 @pytest.mark.parametrize("budget, low, high", [(0.3, 1.4, 2.0), (0.09, 1.2, 1.4)])
@@ -955,7 +973,8 @@ def test_n_step_target_sums_the_discounted_rewards_inside_the_episode_then_boots
                     discount=discount) or {}
     # --reward none with the return bonus: every step's reward is (7 - 2) / (12 - 2) = 0.5
     args = argparse.Namespace(batch_size=500, reward="none", return_bonus=1.0, return_scale="minmax", absorbing=False,
-                              return_decomposition=0.0, n_step=3, gamma=0.9, bc_weight=0.0, action_l2=0.0)
+                              return_decomposition=0.0, n_step=3, gamma=0.9, bc_weight=0.0, action_l2=0.0,
+                              actor_action_cost=False)
     td3_update(agent, None, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
     steps = torch.clamp(10 - seen["obs"], max=3)  # m: 3, or fewer before the episode's end
     assert set(steps.tolist()) == {1.0, 2.0, 3.0}

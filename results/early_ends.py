@@ -19,7 +19,12 @@ episodes (those in its replay buffer R_B, played with exploration noise), per --
 how many ended early, their lengths and the mean return (on Ant-v5 also how many had the ant upside
 down, and their mean return); and whether the critic sees an early end coming: its min(Q1, Q2) at
 R_B's actions over the last 100k transitions, by steps to a termination, against the episodes that
-ran to the limit, with the squared action norm there.
+ran to the limit, with the squared action norm there. On Ant-v5 also the parts of the critic's
+reward (D's reward, the return bonus, the learned reward of --return-decomposition in the critic's
+unit) and its min(Q1, Q2) at the actor's actions, by steps to the first step upside down in R_B's
+last 100k transitions; and with --rest-when-upside-down the probe's actor acts as trained until the
+ant is upside down and then takes the zero action: what a turned-over episode would score if the
+actor did not go on spending actions there.
 """
 
 import argparse
@@ -34,6 +39,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from buffers import default_demo_path  # noqa: E402
 from envs import make_env, rollout  # noqa: E402
 from plumbing import load_checkpoint, positive_int  # noqa: E402
+from sail import Discriminator, RewardModel, scale_returns, shaped_reward  # noqa: E402
 from td3 import TD3  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -42,6 +48,8 @@ p.add_argument("--episodes", type=positive_int, default=20, help="episodes to pl
 p.add_argument("--seed", type=int, default=1000, help="seed of the probe's env")
 p.add_argument("--target", action="store_true", help="play the target actor instead of the actor")
 p.add_argument("--window", type=positive_int, default=50_000, help="env steps per line of the training episodes' summary")
+p.add_argument("--rest-when-upside-down", action="store_true",
+               help="Ant-v5: the zero action from the first step upside down to the episode's end")
 args = p.parse_args()
 for name in ("config.json", "checkpoint.pt"):
     if not os.path.isfile(os.path.join(args.run_dir, name)):
@@ -58,6 +66,8 @@ policy = (lambda o: agent.act(o, target=True)) if args.target else agent.act
 
 unwrapped = env.unwrapped
 ant = config["env"].startswith("Ant")
+if args.rest_when_upside_down and not ant:
+    p.error("--rest-when-upside-down is for Ant-v5 runs")
 
 
 def upside_down(states):
@@ -72,8 +82,14 @@ returns, early, action_cost = [], 0, []
 for i in range(args.episodes):
     positions = []  # the body's x position as each action is chosen
 
+    turned = [False]
+
     def policy_noting_x(obs):
         positions.append(float(unwrapped.data.qpos[0]))
+        if args.rest_when_upside_down:
+            turned[0] = turned[0] or bool(upside_down(obs[None])[0])
+            if turned[0]:
+                return np.zeros(env.action_space.shape, env.action_space.dtype)
         return policy(obs)
 
     episode = rollout(env, policy_noting_x)
@@ -93,7 +109,8 @@ for i in range(args.episodes):
     print(f"episode {i + 1}: return {returns[-1]:.1f} (forward reward {forward:.0f}, control cost "
           f"{weight * (episode['actions'] ** 2).sum():.0f}), length {len(episode['actions'])}, first entry "
           f"{height.min():.2f}-{height.max():.2f}, {ending}")
-print(f"{config['env']}, {'target actor' if args.target else 'actor'}: mean return {np.mean(returns):.1f} over "
+print(f"{config['env']}, {'target actor' if args.target else 'actor'}"
+      f"{' (the zero action once upside down)' if args.rest_when_upside_down else ''}: mean return {np.mean(returns):.1f} over "
       f"{args.episodes} episodes, {early} ended early (env seed {args.seed})")
 with np.load(config.get("demos") or default_demo_path(config["env"]), allow_pickle=False) as demos:
     ends = np.cumsum(demos["episode_lengths"])[:config["num_demos"]]
@@ -155,3 +172,53 @@ for name, selected in groups:
     q = torch.min(*agent.critic(obs[rows].to(agent.device), actions[rows].to(agent.device)))
     print(f"  {name}: {count} transitions, mean over {len(rows)}: Q {q.mean().item():.1f}, "
           f"squared action norm {actions[rows].pow(2).sum(1).mean().item():.2f}")
+
+if not ant:
+    sys.exit(0)
+# Ant-v5: what the critic's reward and Q say on the way to a flip and after it (R_B's last 100k
+# transitions, by steps to the first step upside down of their episode), the reward as sail.py's
+# td3_update makes it from the checkpoint's D, reward model and ranges
+state = checkpoint
+flipped_now = upside_down(obs.numpy())
+first_flip = np.full(n, -1)
+for i in np.flatnonzero(flipped_now & finished)[::-1]:  # the earliest step upside down of each episode
+    first_flip[episode_start == episode_start[i]] = i
+episode_returns_per_step = self_buffer["episode_returns"]
+with torch.no_grad():
+    rewards = torch.zeros(n)
+    parts = {}
+    if config["reward"] in ("sail", "airl"):
+        disc = Discriminator(obs.shape[1], actions.shape[1], config["disc_hidden"], config.get("disc_action_norm", False))
+        disc.load_state_dict(state["disc"])
+        parts["D's reward"] = shaped_reward(disc, obs, actions, config["reward"])
+    if config["return_bonus"] > 0:
+        seen = episode_returns_per_step[~torch.isnan(episode_returns_per_step)]  # finished transitions, as rank's
+        parts["return bonus"] = config["return_bonus"] * scale_returns(
+            episode_returns_per_step, config["return_scale"], state["loop"]["return_range"], seen.sort().values)
+    if state.get("reward_model") is not None:
+        reward_model = RewardModel(obs.shape[1], actions.shape[1], config["hidden"],
+                                   config.get("decomposition_action_cost", False))
+        reward_model.load_state_dict(state["reward_model"])
+        low, high = state["loop"]["rate_range"] if config["decomposition_unit"] == "rate" else (
+            np.array(state["loop"]["return_range"]) / env.max_episode_steps)
+        parts["learned reward"] = config["return_decomposition"] * reward_model(
+            obs, actions, self_buffer["data"][3]) / max(high - low, 1e-8)
+to_flip = np.where(first_flip >= 0, first_flip - index, np.iinfo(np.int64).max)
+print(f"the critic's reward and min(Q1, Q2) at the actor's actions (R_B's last {min(n, 100_000)} transitions), "
+      "by steps to the first step upside down:")
+groups = [("episodes never upside down", finished & (first_flip < 0)),
+          *((f"{low}-{high} steps before" if high < n else f"over {low - 1} steps before", finished & (to_flip >= low) & (to_flip <= high))
+            for low, high in ((101, n), (31, 100), (11, 30), (1, 10))),
+          ("upside down", finished & flipped_now),
+          ("upright again after a flip", finished & (first_flip >= 0) & (to_flip < 0) & ~flipped_now)]
+for name, selected in groups:
+    rows = np.flatnonzero(selected)
+    if len(rows) == 0:
+        print(f"  {name}: none")
+        continue
+    rows_t = torch.as_tensor(rows)
+    with torch.no_grad():
+        o = obs[rows_t].to(agent.device)
+        q = torch.min(*agent.critic(o, agent.actor(o)))
+    print(f"  {name}: {len(rows)} transitions, " + "".join(f"{k} {v[rows_t].mean().item():.3f}, " for k, v in parts.items())
+          + f"Q {q.mean().item():.1f}, squared action norm {actions[rows_t].pow(2).sum(1).mean().item():.2f}")

@@ -178,6 +178,15 @@ GRIDS = {
         {"sail-ln-onpolicy-promotion-rrd1-rate-dan-cost": ("sail.py", [
             *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate",
             "--disc-action-norm", "--decomposition-action-cost"])}, [1, 2, 3]),
+    # the same, with the actor charged that learned cost beside Q (--actor-action-cost): on Ant-v5 the critic's Q
+    # is nearly flat in the action (Q at the zero action within 0.3% of Q at the actor's), so the cost in the
+    # reward hardly reached the actor, and once the ant is upside down (Q near 0 whatever it does) the actor
+    # runs its actions into the bounds: an actor that takes the zero action there instead scores 1161 against
+    # 577 (seed 3, 30 episodes; results/early_ends.py --rest-when-upside-down)
+    "learning-actor-cost": grid(
+        ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+        {"sail-dan-cost-actor": ("sail.py", [*OFF_POLICY, *DEFAULT_FLAGS, "--decomposition-action-cost",
+                                             "--actor-action-cost"])}, [1, 2, 3]),
     # Ant-v5 without its 78 contact forces in the observation (27 entries, Ant-v4's default; the paper's Ant-v2
     # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
     "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*BONUS[1], "--no-contact-forces"])},
