@@ -21,7 +21,7 @@ down, and their mean return); and whether the critic sees an early end coming: i
 R_B's actions over the last 100k transitions, by steps to a termination, against the episodes that
 ran to the limit, with the squared action norm there. On Ant-v5 also the parts of the critic's
 reward (D's reward, the return bonus, the learned reward of --return-decomposition in the critic's
-unit) and its min(Q1, Q2) at the actor's actions, by steps to the first step upside down in R_B's
+unit) and its min(Q1, Q2) at the actor's actions and at the zero action, by steps to the first step upside down in R_B's
 last 100k transitions; and with --rest-when-upside-down the probe's actor acts as trained until the
 ant is upside down and then takes the zero action: what a turned-over episode would score if the
 actor did not go on spending actions there.
@@ -220,5 +220,7 @@ for name, selected in groups:
     with torch.no_grad():
         o = obs[rows_t].to(agent.device)
         q = torch.min(*agent.critic(o, agent.actor(o)))
+        q_zero = torch.min(*agent.critic(o, torch.zeros_like(actions[rows_t])))  # how much Q cares about the action
     print(f"  {name}: {len(rows)} transitions, " + "".join(f"{k} {v[rows_t].mean().item():.3f}, " for k, v in parts.items())
-          + f"Q {q.mean().item():.1f}, squared action norm {actions[rows_t].pow(2).sum(1).mean().item():.2f}")
+          + f"Q {q.mean().item():.2f} (at the zero action {q_zero.mean().item():.2f}), squared action norm "
+          f"{actions[rows_t].pow(2).sum(1).mean().item():.2f}")
