@@ -911,6 +911,36 @@ def test_action_cost_moves_the_actor_to_the_best_action_of_q_minus_the_cost():
     assert final[1.0] == pytest.approx(0.3, abs=0.03)
 
 
+def test_actor_action_cost_charges_the_learned_cost_over_the_decomposition_unit():
+    """sail.py's td3_update with --actor-action-cost: the reward model's learned c (here 2, softplus of
+    its parameter) over the unit (2) and times --return-decomposition (1) charges the actor 1 x ||a||^2,
+    so against Q = -|a - 0.6|^2 its action goes to 0.3; without the flag it stays at Q's 0.6."""
+    import argparse
+    self_buffer = ReplayBuffer(obs_dim=3, act_dim=2, capacity=100)
+    rng = np.random.default_rng(0)
+    for i in range(40):
+        self_buffer.add(rng.normal(size=3), np.zeros(2), 0.0, rng.normal(size=3), 0.0)
+    self_buffer.end_episode(0, 1.0)
+    model = RewardModel(3, 2, [8], learn_action_cost=True)
+    with torch.no_grad():
+        model.action_cost_rho.fill_(float(np.log(np.expm1(2.0))))  # softplus^-1(2)
+    final = {}
+    for charged in (False, True):
+        torch.manual_seed(0)
+        agent = TD3(obs_dim=3, act_dim=2, action_low=-np.ones(2), action_high=np.ones(2), hidden=(16, 16),
+                    policy_delay=1, lr=1e-2)
+        agent.critic.q1, agent.critic.q2 = _QuadraticQ([0.6, 0.6]), _QuadraticQ([0.6, 0.6])
+        args = argparse.Namespace(batch_size=64, reward="none", return_bonus=0.0, return_scale="minmax",
+                                  absorbing=False, return_decomposition=1.0, n_step=1, gamma=0.99, bc_weight=0.0,
+                                  action_l2=0.0, actor_action_cost=charged)
+        for _ in range(200):
+            td3_update(agent, None, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(0.0, 1.0),
+                       reward_model=model, decomposition_unit=2.0)
+        final[charged] = agent.actor(self_buffer.obs[:40]).mean().item()
+    assert final[False] == pytest.approx(0.6, abs=0.03)
+    assert final[True] == pytest.approx(0.3, abs=0.03)
+
+
 @pytest.mark.parametrize("budget, low, high", [(0.3, 1.4, 2.0), (0.09, 1.2, 1.4)])
 def test_action_budget_leaves_the_actions_free_up_to_it(budget, low, high):
     """Q's best action 1.5 in [0, 2] is 0.5 half-ranges from the middle, a squared action of 0.25:
