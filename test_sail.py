@@ -1394,6 +1394,37 @@ def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_result(tmp_path
     assert_same_run(straight_run, run_dir)
 
 
+def test_early_end_probe_on_ant_shows_the_reward_by_steps_to_a_flip_and_the_resting_actor(tmp_path, straight_run):
+    """On an Ant-v5 run the probe ends with the critic's reward parts and Q (at the actor's and at the
+    zero action) by steps to the first step upside down; --rest-when-upside-down plays the actor that
+    rests once upside down, and is refused on other envs with one line."""
+    proc = run_script("sail.py", "--env", "Ant-v5", "--total-timesteps", "1200", "--learning-starts", "300",
+                      "--eval-freq", "1200", "--disc-freq", "100", "--seed", "1", "--checkpoint-freq", "1200",
+                      "--decomposition-action-cost", "--actor-action-cost", *TINY, "--output-dir", str(tmp_path),
+                      "--run-name", "ant")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    probe = os.path.join("results", "early_ends.py")
+    played, resting, refused = run_scripts((probe, str(tmp_path / "ant"), "--episodes", "1"),
+                                           (probe, str(tmp_path / "ant"), "--episodes", "1", "--rest-when-upside-down"),
+                                           (probe, str(straight_run), "--rest-when-upside-down"))
+    assert played.returncode == 0 and resting.returncode == 0, played.stderr[-3000:] + resting.stderr[-3000:]
+    assert any(line.startswith("Ant-v5, actor: mean return") for line in played.stdout.splitlines())
+    assert any(line.startswith("Ant-v5, actor (the zero action once upside down): mean return")
+               for line in resting.stdout.splitlines())
+    lines = played.stdout.splitlines()
+    start = lines.index(next(line for line in lines if line.startswith("the critic's reward and min(Q1, Q2)")))
+    groups = lines[start + 1:]
+    assert [line.split(":")[0].strip() for line in groups] == [
+        "episodes never upside down", "over 100 steps before", "31-100 steps before", "11-30 steps before",
+        "1-10 steps before", "upside down", "upright again after a flip"]
+    never = groups[0]  # 1200 random and barely trained steps: some finished episodes, each part of the reward
+    assert re.match(r"  episodes never upside down: \d+ transitions, D's reward -?\d+\.\d{3}, return bonus "
+                    r"-?\d+\.\d{3}, learned reward -?\d+\.\d{3}, Q -?\d+\.\d{2} \(at the zero action "
+                    r"-?\d+\.\d{2}\), squared action norm \d+\.\d{2}$", never), never
+    assert refused.returncode == 2 and refused.stderr.strip().splitlines()[-1].endswith(
+        "--rest-when-upside-down is for Ant-v5 runs")
+
+
 def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     probe = os.path.join("results", "early_ends.py")
     proc, missing = run_scripts((probe, str(straight_run), "--episodes", "3"), (probe, str(tmp_path)))

@@ -1,6 +1,6 @@
 """The early-end probe: which of a run's evaluation episodes end before the time limit, and how.
 
-    python results/early_ends.py RUN_DIR [--episodes 20] [--seed 1000] [--target]
+    python results/early_ends.py RUN_DIR [--episodes 20] [--seed 1000] [--target] [--rest-when-upside-down]
 
 RUN_DIR is a sail.py run folder (config.json and checkpoint.pt). Plays --episodes episodes of
 its deterministic actor (--target: its Polyak-averaged target actor) and prints, for each, the
@@ -178,37 +178,37 @@ if not ant:
 # Ant-v5: what the critic's reward and Q say on the way to a flip and after it (R_B's last 100k
 # transitions, by steps to the first step upside down of their episode), the reward as sail.py's
 # td3_update makes it from the checkpoint's D, reward model and ranges
-state = checkpoint
 flipped_now = upside_down(obs.numpy())
-first_flip = np.full(n, -1)
-for i in np.flatnonzero(flipped_now & finished)[::-1]:  # the earliest step upside down of each episode
-    first_flip[episode_start == episode_start[i]] = i
+# each episode's first step upside down (R_B's index; -1 for none), by its start (R_B does not wrap in 300k steps)
+first_by_start = np.full(n, n)
+np.minimum.at(first_by_start, episode_start[flipped_now & finished], index[flipped_now & finished])
+first_flip = np.where(first_by_start[episode_start] < n, first_by_start[episode_start], -1)
 episode_returns_per_step = self_buffer["episode_returns"]
+parts = {}
 with torch.no_grad():
-    rewards = torch.zeros(n)
-    parts = {}
     if config["reward"] in ("sail", "airl"):
         disc = Discriminator(obs.shape[1], actions.shape[1], config["disc_hidden"], config.get("disc_action_norm", False))
-        disc.load_state_dict(state["disc"])
+        disc.load_state_dict(checkpoint["disc"])
         parts["D's reward"] = shaped_reward(disc, obs, actions, config["reward"])
     if config["return_bonus"] > 0:
         seen = episode_returns_per_step[~torch.isnan(episode_returns_per_step)]  # finished transitions, as rank's
         parts["return bonus"] = config["return_bonus"] * scale_returns(
-            episode_returns_per_step, config["return_scale"], state["loop"]["return_range"], seen.sort().values)
-    if state.get("reward_model") is not None:
+            episode_returns_per_step, config["return_scale"], checkpoint["loop"]["return_range"], seen.sort().values)
+    if checkpoint.get("reward_model") is not None:
         reward_model = RewardModel(obs.shape[1], actions.shape[1], config["hidden"],
                                    config.get("decomposition_action_cost", False))
-        reward_model.load_state_dict(state["reward_model"])
-        low, high = state["loop"]["rate_range"] if config["decomposition_unit"] == "rate" else (
-            np.array(state["loop"]["return_range"]) / env.max_episode_steps)
+        reward_model.load_state_dict(checkpoint["reward_model"])
+        low, high = checkpoint["loop"]["rate_range"] if config["decomposition_unit"] == "rate" else (
+            np.array(checkpoint["loop"]["return_range"]) / env.max_episode_steps)
         parts["learned reward"] = config["return_decomposition"] * reward_model(
             obs, actions, self_buffer["data"][3]) / max(high - low, 1e-8)
 to_flip = np.where(first_flip >= 0, first_flip - index, np.iinfo(np.int64).max)
 print(f"the critic's reward and min(Q1, Q2) at the actor's actions (R_B's last {min(n, 100_000)} transitions), "
       "by steps to the first step upside down:")
 groups = [("episodes never upside down", finished & (first_flip < 0)),
-          *((f"{low}-{high} steps before" if high < n else f"over {low - 1} steps before", finished & (to_flip >= low) & (to_flip <= high))
-            for low, high in ((101, n), (31, 100), (11, 30), (1, 10))),
+          *((name, finished & (to_flip >= low) & (to_flip <= high)) for name, low, high in (
+              ("over 100 steps before", 101, n), ("31-100 steps before", 31, 100), ("11-30 steps before", 11, 30),
+              ("1-10 steps before", 1, 10))),
           ("upside down", finished & flipped_now),
           ("upright again after a flip", finished & (first_flip >= 0) & (to_flip < 0) & ~flipped_now)]
 for name, selected in groups:
