@@ -101,8 +101,8 @@ CSV_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "
 RESUMABLE = ("total_timesteps", "threads", "device")
 # a run saved before the return bonus existed (or became the default) ran without; and without decomposition
 PREDATING = {"return_bonus": 0.0, "return_decomposition": 0.0, "critic_layer_norm": False,
-             "decomposition_unit": "range", "decomposition_action_cost": False, "actor_action_cost": False, "n_step": 1, "utd": 1,
-             "bc_weight": 0.0, "action_l2": 0.0, "action_budget": "none", "disc_action_norm": False, "noise_beta": 0.0,
+             "decomposition_unit": "range", "decomposition_action_cost": False, "actor_action_cost": False,
+             "n_step": 1, "utd": 1, "bc_weight": 0.0, "action_l2": 0.0, "action_budget": "none", "disc_action_norm": False, "noise_beta": 0.0,
              "contact_forces": True, "on_policy_from": "start"}
 
 
