@@ -390,7 +390,7 @@ def scale_returns(returns, kind, return_range, sorted_returns):
 
 
 # ---------------------------------------------------------------------------------------------
-# Return decomposition (an addition to the paper, off by default: --return-decomposition)
+# Return decomposition (an addition to the paper, on by default: --return-decomposition 0 turns it off)
 # ---------------------------------------------------------------------------------------------
 
 class RewardModel(nn.Module):
