@@ -36,7 +36,7 @@ from td3 import TD3, make_adam
 def parse_args(argv=None):
     p = plumbing.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="Walker2d-v5", help="gymnasium env id")
-    p.add_argument("--seed", type=int, default=1, help="seed of the eval env, numpy and torch")
+    p.add_argument("--seed", type=plumbing.seed, default=1, help="seed of the eval env, numpy and torch")
     p.add_argument("--demos", help="demo file (default: demos/<env>.npz)")
     p.add_argument("--num-demos", type=plumbing.positive_int, default=1, help="teacher episodes used from the demo file")
     p.add_argument("--bc-steps", type=plumbing.positive_int, default=20_000, help="gradient steps")

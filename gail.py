@@ -47,7 +47,7 @@ def parse_args(argv=None):
     p = plumbing.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="Walker2d-v5", help="gymnasium env id")
     p.add_argument("--pofd", action="store_true", help="POfD: add 0.1 x the sparse episodic reward to D's reward")
-    p.add_argument("--seed", type=int, default=1, help="seed of env, action space, numpy and torch")
+    p.add_argument("--seed", type=plumbing.seed, default=1, help="seed of env, action space, numpy and torch")
     p.add_argument("--total-timesteps", type=positive_int, default=1_000_000, help="env steps of the run")
     p.add_argument("--steps-per-batch", type=positive_int, default=5000, help="env steps per TRPO iteration")
     p.add_argument("--demos", help="demo file (default: demos/<env>.npz)")

@@ -49,7 +49,7 @@ BANDS = {
 def parse_args(argv=None):
     p = plumbing.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="Hopper-v5", help="gymnasium env id")
-    p.add_argument("--seed", type=int, default=0, help="seed of env, action space and torch")
+    p.add_argument("--seed", type=plumbing.seed, default=0, help="seed of env, action space and torch")
     p.add_argument("--band", type=float, nargs=2, metavar=("LOW", "HIGH"),
                    help="teacher return band (default: the paper's quality for the five envs)")
     p.add_argument("--num-episodes", type=plumbing.positive_int, default=10, help="episodes to record")
@@ -66,11 +66,13 @@ def parse_args(argv=None):
     p.add_argument("--eval-episodes", type=plumbing.positive_int, default=5, help="episodes per evaluation")
     p.add_argument("--record-attempts", type=plumbing.positive_int, default=40,
                    help="episodes tried per recording round to find --num-episodes in the band")
-    p.add_argument("--exploration-noise", type=float, default=0.1, help="std of Gaussian action noise")
+    p.add_argument("--exploration-noise", type=plumbing.non_negative_float, default=0.1,
+                   help="std of Gaussian action noise")
     p.add_argument("--batch-size", type=plumbing.positive_int, default=256, help="TD3 batch size")
     p.add_argument("--hidden", type=plumbing.positive_int, nargs="+", default=[128, 128],
                    help="hidden layer sizes (small: a mediocre teacher needs no more, and trains 3x faster)")
-    p.add_argument("--lr", type=float, default=3e-4, help="Adam learning rate of actor and critic")
+    p.add_argument("--lr", type=plumbing.non_negative_float, default=3e-4,
+                   help="Adam learning rate of actor and critic")
     p.add_argument("--gamma", type=float, default=0.99, help="discount")
     p.add_argument("--threads", type=plumbing.positive_int, default=1, help="torch CPU threads")
     p.add_argument("--checkpoint", help="checkpoint file, written every --checkpoint-freq steps and "
@@ -91,6 +93,36 @@ def parse_args(argv=None):
         p.error("--learning-starts must be >= 0")
     args.output = args.output or default_demo_path(args.env)
     return args
+
+
+def record_in_band(eval_env, agent, in_band, args):
+    """Deterministic episodes of the teacher, at most --record-attempts: those in the band, up to --num-episodes."""
+    episodes = []
+    for _ in range(args.record_attempts):
+        episode = rollout(eval_env, agent.act)
+        if in_band(episode["episodic_return"]):
+            episodes.append(episode)
+            if len(episodes) == args.num_episodes:
+                break
+    return episodes
+
+
+def write_outputs(args, agent, episodes, global_step):
+    save_demos(args.output, episodes, args.env)
+    if args.minari:
+        save_minari(args.minari, episodes, args.env)
+        print(f"wrote the Minari dataset {args.minari}")
+    if args.save_teacher:
+        args.algo, args.time_feature, args.absorbing = "teacher", False, False
+        teacher_dir = plumbing.make_run_dir(os.path.dirname(os.path.abspath(args.save_teacher)),
+                                            os.path.basename(os.path.abspath(args.save_teacher)), vars(args))
+        save_model(teacher_dir, agent, None, args)
+        print(f"wrote the teacher to {teacher_dir}")
+    rets = [ep["episodic_return"] for ep in episodes]
+    lens = [len(ep["actions"]) for ep in episodes]
+    print(f"wrote {args.output}: {len(episodes)} episodes after {global_step} teacher steps, "
+          f"returns {np.mean(rets):.1f} +- {np.std(rets):.1f} (min {min(rets):.1f}, "
+          f"max {max(rets):.1f}), lengths {min(lens)}-{max(lens)}")
 
 
 def train(args):
@@ -155,40 +187,21 @@ def train(args):
                 obs_b, act_b, rew_b, next_obs_b, term_b = buffer.sample(args.batch_size)
                 agent.update(obs_b, act_b, rew_b, next_obs_b, term_b)
 
-            if args.checkpoint and global_step % args.checkpoint_freq == 0:
-                save_checkpoint(global_step)
-
             if global_step % args.eval_freq == 0 and global_step > args.learning_starts:  # a trained teacher only
                 returns = [rollout(eval_env, agent.act)["episodic_return"] for _ in range(args.eval_episodes)]
                 mean = float(np.mean(returns))
                 print(f"step {global_step}: teacher eval return {mean:.1f} +- {np.std(returns):.1f} "
                       f"({(global_step - first_step + 1) / (time.time() - start):.0f} steps/s)", flush=True)
-                if not in_band(mean):
-                    continue
-                episodes = []
-                for _ in range(args.record_attempts):
-                    episode = rollout(eval_env, agent.act)
-                    if in_band(episode["episodic_return"]):
-                        episodes.append(episode)
+                if in_band(mean):
+                    episodes = record_in_band(eval_env, agent, in_band, args)
                     if len(episodes) == args.num_episodes:
-                        save_demos(args.output, episodes, args.env)
-                        if args.minari:
-                            save_minari(args.minari, episodes, args.env)
-                            print(f"wrote the Minari dataset {args.minari}")
-                        if args.save_teacher:
-                            args.algo, args.time_feature, args.absorbing = "teacher", False, False
-                            teacher_dir = plumbing.make_run_dir(os.path.dirname(os.path.abspath(args.save_teacher)),
-                                                                os.path.basename(os.path.abspath(args.save_teacher)),
-                                                                vars(args))
-                            save_model(teacher_dir, agent, None, args)
-                            print(f"wrote the teacher to {teacher_dir}")
-                        rets = [ep["episodic_return"] for ep in episodes]
-                        lens = [len(ep["actions"]) for ep in episodes]
-                        print(f"wrote {args.output}: {len(episodes)} episodes after {global_step} teacher steps, "
-                              f"returns {np.mean(rets):.1f} +- {np.std(rets):.1f} (min {min(rets):.1f}, "
-                              f"max {max(rets):.1f}), lengths {min(lens)}-{max(lens)}")
+                        write_outputs(args, agent, episodes, global_step)
                         return 0
-                print(f"  only {len(episodes)} of {args.record_attempts} episodes in the band; training on")
+                    print(f"  only {len(episodes)} of {args.record_attempts} episodes in the band; training on")
+
+            # after the evaluation and recording, which draw on eval_env: a resumed run replays neither
+            if args.checkpoint and global_step % args.checkpoint_freq == 0:
+                save_checkpoint(global_step)
     raise ConfigError(f"the teacher did not reach the band {args.band} within {args.total_timesteps} steps")
 
 

@@ -59,6 +59,14 @@ def positive_int(text):
     return value
 
 
+def seed(text):
+    """argparse type: a seed that numpy, gymnasium and torch all accept (0 <= seed < 2**32)."""
+    value = int(text)
+    if not 0 <= value < 2**32:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2**32), got {value}")
+    return value
+
+
 def non_negative_float(text):
     value = float(text)
     if not value >= 0:  # also nan

@@ -111,7 +111,7 @@ def parse_args(argv=None):
     g = p.add_argument_group("experiment")
     g.add_argument("--env", default="Walker2d-v5", help="gymnasium env id (MuJoCo v5 or any Box-action env)")
     g.add_argument("--algo", choices=sorted(PRESETS), default="sail", help="method: SAIL or a baseline preset")
-    g.add_argument("--seed", type=int, default=1, help="seed of env, action space, numpy and torch")
+    g.add_argument("--seed", type=plumbing.seed, default=1, help="seed of env, action space, numpy and torch")
     g.add_argument("--total-timesteps", type=positive_int, default=1_000_000, help="env steps of the run")
     g.add_argument("--learning-starts", type=positive_int, default=10_000,
                    help="uniformly random steps that initialise R_B before any update (with the return bonus "
@@ -603,7 +603,12 @@ def train(args):
                 args.env, args.algo, args.seed), config)
         cpu_kernels.apply(s.kernels, [*agent.networks(), disc, *([reward_model] if reward_model else [])])
         ranked = args.return_bonus > 0 and args.return_scale == "rank"  # kept sorted, for scale_returns
-        sorted_returns = self_buffer.sorted_episode_returns().to(device) if ranked else None
+        sorted_returns = None
+        if ranked:  # as of the last episode's end: a resumed run takes the saved one (R_B may have wrapped since)
+            sorted_returns = saved.get("sorted_returns") if args.resume else None
+            if sorted_returns is None:
+                sorted_returns = self_buffer.sorted_episode_returns()
+            sorted_returns = sorted_returns.to(device)
         needs_returns = args.return_bonus > 0 or args.return_decomposition > 0
 
         def draw_episode_noise():
@@ -629,7 +634,8 @@ def train(args):
             count_time()  # so that a run resumed from this checkpoint loses no training time
             # the latest losses too: D trains every --disc-freq steps, and the next evaluation logs them
             plumbing.save_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts, loop=dataclasses.asdict(s), obs=obs,
-                                     stats={k: float(v) for k, v in stats.items()}, episode_noise=episode_noise)
+                                     stats={k: float(v) for k, v in stats.items()}, episode_noise=episode_noise,
+                                     sorted_returns=None if sorted_returns is None else sorted_returns.cpu())
 
         print(f"run folder: {run_dir}\nCPU: {plumbing.cpu_model()}, kernels: {s.kernels}", flush=True)
         if use_demos:

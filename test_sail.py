@@ -623,10 +623,38 @@ def test_make_demos_bad_input_is_one_line(capsys):
     *procs, unknown = [main_in_process(make_demos.main, argv, capsys) for argv in (
         ["--env", "NoSuchEnv-v5", "--band", "0", "1"], ["--env", "Hopper-v5", "--num-episodes", "0"],
         ["--env", "Pendulum-v1"],  # no default band
+        ["--env", "Hopper-v5", "--seed", "-1"], ["--env", "Hopper-v5", "--exploration-noise", "-0.1"],
+        ["--env", "Hopper-v5", "--lr", "-1"],
         ["--env", "NoSuchEnv-v5"])]  # not reported as a missing band
     for proc in procs + [unknown]:
         assert_one_line_error(proc)
     assert "unknown environment" in unknown.stderr
+
+
+def test_make_demos_resumed_from_a_checkpoint_continues_the_same_run(tmp_path):
+    """A checkpoint at an evaluation step is written after that evaluation, which draws start
+    states from the eval env: a run resumed from it goes on as the run that wrote it did."""
+    def command(checkpoint, every):
+        return ("make_demos.py", "--env", "Hopper-v5", "--total-timesteps", "1500", "--learning-starts", "500",
+                "--eval-freq", "500", "--eval-episodes", "2", "--hidden", "16", "16",
+                "--band", "1e6", "1e7",  # unreachable: evaluations at 1000 and 1500, then the one-line error
+                "--checkpoint", str(tmp_path / checkpoint), "--checkpoint-freq", every,
+                "--output", str(tmp_path / "never.npz"))
+    straight, stopped = run_scripts(command("a.pt", "500"), command("b.pt", "1000"), at_once=2)
+    resumed = run_script(*command("b.pt", "500"))  # from b.pt's step 1000, as after a crash there
+    assert straight.returncode == stopped.returncode == resumed.returncode == 1, resumed.stderr[-3000:]
+    assert "resumed from" in resumed.stdout
+
+    def flat(state, prefix=""):
+        items = state.items() if isinstance(state, dict) else enumerate(state) if isinstance(state, list) else None
+        if items is None:
+            return {prefix: state}
+        return {k: v for key, value in items for k, v in flat(value, f"{prefix}/{key}").items()}
+    a, b = (flat(torch.load(tmp_path / name, weights_only=False)) for name in ("a.pt", "b.pt"))
+    assert a.keys() == b.keys() and a["/global_step"] == 1500 and any("eval_env" in k for k in a)
+    for key in (k for k in a if not k.endswith("episode_start_time")):  # wall clock (RecordEpisodeStatistics)
+        x, y = np.asarray(a[key]), np.asarray(b[key])
+        assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), key
 
 
 def test_make_demos_unreadable_checkpoint_is_one_line(tmp_path, capsys):
@@ -1334,6 +1362,20 @@ def test_resume_with_return_decomposition_equals_an_uninterrupted_run(tmp_path, 
                for r in read_csv(tmp_path / "b")[2:])  # c logged
 
 
+def test_resume_with_rank_scaled_returns_in_a_wrapped_buffer_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos):
+    """--return-scale rank ranks against R_B's returns as of the last episode's end; once R_B wraps,
+    steps overwritten since then still count, so the checkpoint keeps that ranking rather than
+    a resumed run rebuilding it from the buffer."""
+    flags = [*RESUME_FLAGS, "--demos", poor_hopper_demos, "--return-scale", "rank", "--buffer-size", "1001",
+             "--eval-freq", "400", "--output-dir", str(tmp_path)]
+    straight, first = run_scripts(("sail.py", *flags, "--total-timesteps", "1600", "--run-name", "a"),
+                                  ("sail.py", *flags, "--total-timesteps", "1300", "--run-name", "b"), at_once=2)
+    assert straight.returncode == first.returncode == 0, (straight.stderr + first.stderr)[-3000:]
+    resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1600")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert_same_run(tmp_path / "a", tmp_path / "b")
+
+
 def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(straight_decomposition_run,
                                                                            straight_paper_run):
     probe = os.path.join("results", "rrd_probe.py")
@@ -1588,6 +1630,7 @@ def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos, caps
                  ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--no-contact-forces", *out],
                  ["--eval-freq", "5000", "--total-timesteps", "1000", *out],
                  ["--action-budget", "teacher", *out],  # without --action-l2: nothing to leave free
+                 ["--seed", "-1", *out], ["--seed", str(2**32), *out],  # numpy, gymnasium or torch would refuse it
                  ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--output-dir", str(blocker / "runs")]):
         assert_one_line_error(main_in_process(sail.main, argv, capsys))
     assert not os.path.exists(tmp_path / "runs")  # nothing was started
