@@ -365,7 +365,13 @@ def read_minari(source):
     """A Minari dataset (folder, or id in the local store; nothing is downloaded) as the arrays of
     a demo file. Minari keeps N+1 observations for an episode of N actions: observation t and
     t+1 make transition t."""
-    minari = _minari()
+    try:
+        minari = _minari()
+    except ConfigError as e:
+        if os.path.isdir(source):
+            raise
+        raise ConfigError(f"{source} is not a demo file; as a Minari dataset id, it needs the minari package "
+                          "(pip install -r requirements-extras.txt)") from None
     try:
         if os.path.isdir(source):
             data_dir = os.path.join(source, "data") if os.path.isdir(os.path.join(source, "data")) else source

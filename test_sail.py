@@ -388,6 +388,14 @@ def test_demo_file_round_trip(tmp_path):
         assert {"gymnasium_version", "mujoco_version"} <= set(f.files)
 
 
+def test_a_mistyped_demo_path_without_minari_installed_says_it_is_not_a_demo_file(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "minari", None)  # import minari: ImportError
+    with pytest.raises(ConfigError, match="demos/Hoper-v5 is not a demo file; as a Minari dataset id"):
+        load_demos("demos/Hoper-v5", "Hopper-v5", 11, 3)
+    with pytest.raises(ConfigError, match="^Minari datasets need the minari package"):
+        load_demos(str(tmp_path), "Hopper-v5", 11, 3)  # a folder: only a Minari dataset could be meant
+
+
 def test_each_bad_demo_file_gives_a_clear_error(tmp_path):
     path = str(tmp_path / "demo.npz")
     with pytest.raises(ConfigError, match="not found"):
