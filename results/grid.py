@@ -197,6 +197,13 @@ GRIDS = {
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
                  {"sail-1M": ("sail.py", ["--total-timesteps", "1000000", "--threads", "1", "--checkpoint-freq", "10000"])},
                  [2, 3]),
+    # the pair --decomposition-action-cost --actor-action-cost on the defaults for 1M env steps: seeds 2 and 3 are
+    # their 300k runs of `learning-actor-cost`, continued with --resume --total-timesteps 1000000 (the run folder
+    # copied to this grid's runs folder first)
+    "long-actor-cost": grid(["Walker2d-v5", "HalfCheetah-v5"],
+                            {"sail-dan-cost-actor-1M": ("sail.py", [
+                                "--total-timesteps", "1000000", "--threads", "1", "--checkpoint-freq", "10000",
+                                *DEFAULT_FLAGS, "--decomposition-action-cost", "--actor-action-cost"])}, [2, 3]),
     # the bonus base for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long-bonus": grid(["Walker2d-v5", "HalfCheetah-v5"],
