@@ -2028,6 +2028,31 @@ def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path, c
     assert [int(r["global_step"]) for r in read_csv(tmp_path / "other" / "r")] == [200, 400]
 
 
+def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
+    """A committed run's config, learner flag by learner flag, is what its grid line gives sail.py as it is
+    now: a default that changes must leave the grids of the older runs writing the old value out."""
+    import importlib.util
+    from plot import SETUP_FLAGS
+    spec = importlib.util.spec_from_file_location("grid", os.path.join(HERE, "results", "grid.py"))
+    grid_module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(grid_module)
+    checked = 0
+    for entries in grid_module.GRIDS.values():
+        for name, script, flags in entries:
+            for folder in ("runs", os.path.join("long", "runs")):
+                path = os.path.join(HERE, "results", folder, name, "config.json")
+                if script != "sail.py" or not os.path.isfile(path):
+                    continue
+                with open(path) as f:
+                    config = json.load(f)
+                args = vars(sail.parse_args(flags))
+                differ = {key: (config.get(key, sail.PREDATING.get(key, value)), value) for key, value in args.items()
+                          if key not in SETUP_FLAGS and config.get(key, sail.PREDATING.get(key, value)) != value}
+                assert not differ, (name, differ)
+                checked += 1
+    assert checked > 100
+
+
 def test_grid_list_into_a_closed_pipe_is_quiet():
     """`grid.py list GRID | head -1`: the reader closes the pipe early; no traceback."""
     proc = subprocess.Popen([sys.executable, os.path.join(HERE, "results", "grid.py"), "list", "learning"],
