@@ -1994,12 +1994,18 @@ def test_tensorboard_logs_the_csv_numbers(tmp_path, poor_hopper_demos):
 # results/grid.py: grids through GNU parallel and SLURM job arrays
 # ---------------------------------------------------------------------------------------------
 
-def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path, capsys):
+def load_grid_module():
+    """results/grid.py, a script in a folder that is not a package, as a module."""
     import importlib.util
+    spec = importlib.util.spec_from_file_location("grid", os.path.join(HERE, "results", "grid.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path, capsys):
     grid = os.path.join(HERE, "results", "grid.py")
-    spec = importlib.util.spec_from_file_location("grid", grid)
-    grid_module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(grid_module)
+    grid_module = load_grid_module()
     runs = str(tmp_path / "runs")
     lines = main_in_process(grid_module.main, ["list", "smoke", runs], capsys).stdout.splitlines()
     assert len(lines) == 2 and all(" run " + runs + " Pendulum-v1__td3__" in line for line in lines)
@@ -2031,13 +2037,9 @@ def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path, c
 def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
     """A committed run's config, learner flag by learner flag, is what its grid line gives sail.py as it is
     now: a default that changes must leave the grids of the older runs writing the old value out."""
-    import importlib.util
     from plot import SETUP_FLAGS
-    spec = importlib.util.spec_from_file_location("grid", os.path.join(HERE, "results", "grid.py"))
-    grid_module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(grid_module)
     checked = 0
-    for entries in grid_module.GRIDS.values():
+    for entries in load_grid_module().GRIDS.values():
         for name, script, flags in entries:
             for folder in ("runs", os.path.join("long", "runs")):
                 path = os.path.join(HERE, "results", folder, name, "config.json")
@@ -2045,10 +2047,9 @@ def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
                     continue
                 with open(path) as f:
                     config = json.load(f)
-                args = vars(sail.parse_args(flags))
-                differ = {key: (config.get(key, sail.PREDATING.get(key, value)), value) for key, value in args.items()
-                          if key not in SETUP_FLAGS and config.get(key, sail.PREDATING.get(key, value)) != value}
-                assert not differ, (name, differ)
+                args = {key: value for key, value in vars(sail.parse_args(flags)).items() if key not in SETUP_FLAGS}
+                saved = {key: config.get(key, sail.PREDATING.get(key, value)) for key, value in args.items()}
+                assert saved == args, (name, {key: (saved[key], args[key]) for key in args if saved[key] != args[key]})
                 checked += 1
     assert checked > 100
 
