@@ -187,6 +187,15 @@ GRIDS = {
         ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
         {"sail-dan-cost-actor": ("sail.py", [*OFF_POLICY, *DEFAULT_FLAGS, "--decomposition-action-cost",
                                              "--actor-action-cost"])}, [1, 2, 3]),
+    # seeds 4 and 5 of sail.py's defaults and of that pair, on all five envs, so that the choice between them is
+    # made on 5 seeds each. Fixed before these runs started (2026-11-27): the pair becomes the default if its
+    # 5-seed mean (seeds 1-5, final = mean of the last 5 evaluations) is above the defaults' on at least three of
+    # the five envs; otherwise it stays a flag
+    "decide-actor-cost": grid(
+        ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
+        {"sail-ln-onpolicy-promotion-rrd1-rate-dan": ("sail.py", [*OFF_POLICY, *DEFAULT_FLAGS]),
+         "sail-dan-cost-actor": ("sail.py", [*OFF_POLICY, *DEFAULT_FLAGS, "--decomposition-action-cost",
+                                             "--actor-action-cost"])}, [4, 5]),
     # Ant-v5 without its 78 contact forces in the observation (27 entries, Ant-v4's default; the paper's Ant-v2
     # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
     "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*BONUS[1], "--no-contact-forces"])},
