@@ -233,6 +233,11 @@ def rollout(env, policy, frames=None):
 # ---------------------------------------------------------------------------------------------
 
 _PLAIN = (bool, int, float, str, type(None), np.number, np.ndarray, tuple, dict)
+# The frames and centres of mass that MuJoCo's last substep computed before it moved the bodies, which an
+# env may read before its next step (Ant-v5's xy position of the torso, Humanoid-v5's centre of mass, for
+# the velocity in the reward): mj_forward would recompute them at the current state, a substep later
+_KINEMATICS = ("xpos", "xquat", "xmat", "xipos", "ximat", "xanchor", "xaxis", "geom_xpos", "geom_xmat",
+               "site_xpos", "site_xmat", "subtree_com")
 
 
 def get_env_state(env):
@@ -250,6 +255,7 @@ def get_env_state(env):
         sim = np.empty(mujoco.mj_stateSize(base.model, spec))
         mujoco.mj_getState(base.model, base.data, sim, spec)
         state["mujoco"] = sim
+        state["mujoco_kinematics"] = {name: getattr(base.data, name).copy() for name in _KINEMATICS}
     elif hasattr(base, "state"):  # classic-control style envs
         state["base_state"] = copy.deepcopy(base.state)
     return state
@@ -280,6 +286,8 @@ def set_env_state(env, state):
         import mujoco
         mujoco.mj_setState(layer.model, layer.data, state["mujoco"], mujoco.mjtState.mjSTATE_INTEGRATION)
         mujoco.mj_forward(layer.model, layer.data)
+        for name, value in state.get("mujoco_kinematics", {}).items():  # absent in checkpoints made before
+            getattr(layer.data, name)[...] = value
     elif "base_state" in state:
         layer.state = copy.deepcopy(state["base_state"])
 
