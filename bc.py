@@ -47,7 +47,7 @@ def parse_args(argv=None):
                    help="append 1 - t/T to obs (as SAIL's actor sees it)")
     p.add_argument("--eval-freq", type=plumbing.positive_int, default=10_000, help="gradient steps between evaluations")
     p.add_argument("--eval-episodes", type=plumbing.positive_int, default=5, help="episodes per evaluation")
-    p.add_argument("--threads", type=plumbing.positive_int, default=2, help="torch CPU threads")
+    p.add_argument("--threads", type=plumbing.threads, default=2, help="torch CPU threads")
     p.add_argument("--output-dir", default="runs", help="parent folder of the run folder")
     p.add_argument("--run-name", help="run folder name (default: <env>__bc__<seed>__<time>)")
     p.add_argument("--save-model", action="store_true", help="save the actor to model.pt at the end")

@@ -22,7 +22,6 @@ copied to torch for every batch.
 import copy
 import csv
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -38,13 +37,14 @@ import sail
 import td3
 from buffers import ReplayBuffer, TeacherBuffer
 from envs import make_env
+import plumbing
 from plumbing import ArgumentParser, cpu_model, positive_int
 
 
 def parse_args():
     p = ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="Walker2d-v5", help="env of the end-to-end part and the sizes")
-    p.add_argument("--threads", type=positive_int, default=2, help="torch CPU threads")
+    p.add_argument("--threads", type=plumbing.threads, default=2, help="torch CPU threads")
     p.add_argument("--hidden", type=positive_int, default=256, help="hidden size of both layers of every network")
     p.add_argument("--batch-size", type=positive_int, default=256, help="batch size")
     p.add_argument("--updates", type=positive_int, default=1000, help="timed updates of part 2, per loop")
@@ -300,8 +300,7 @@ def peak_memory_gb(args):
     return float(out.stdout.split()[-1])
 
 
-def main():
-    args = parse_args()
+def main(args):
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     np.random.seed(0)
@@ -328,7 +327,8 @@ def main():
     if not args.skip_memory:
         print(f"4. peak memory of a Walker2d-v5 run with a full 1M-transition self buffer, after a checkpoint: "
               f"{peak_memory_gb(args):.2f} GB")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(plumbing.run_main("bench.py", main, parse_args()))

@@ -7,7 +7,6 @@ The demo file format is documented in README.md; `load_demos` checks it.
 
 import os
 import warnings
-import zipfile
 
 import numpy as np
 import torch
@@ -311,8 +310,8 @@ def load_demos(path, env_id, obs_dim, act_dim, num_demos=None):
         try:
             with np.load(path, allow_pickle=False) as f:
                 data = {k: f[k] for k in f.files}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-            raise ConfigError(f"demo file {path} is not a readable .npz file ({e})") from None
+        except Exception as e:  # not a zip, a damaged one (zlib), a plain .npy array, ...
+            raise ConfigError(f"demo file {path} is not a readable .npz file ({first_line(e)})") from None
     elif os.path.isdir(path) or not path.endswith(".npz"):
         data = read_minari(path)
     else:
@@ -320,6 +319,10 @@ def load_demos(path, env_id, obs_dim, act_dim, num_demos=None):
     missing = [k for k in DEMO_KEYS if k not in data]
     if missing:
         raise ConfigError(f"demo file {path} lacks {', '.join(missing)}")
+    not_numbers = [k for k in DEMO_KEYS if k != "env_id" and (np.ndim(data[k]) == 0 or not (
+        np.issubdtype(data[k].dtype, np.number) or data[k].dtype == bool))]
+    if not_numbers:
+        raise ConfigError(f"demo file {path}: {', '.join(not_numbers)} must be arrays of numbers")
     file_env = str(data["env_id"])
     n = len(data["actions"])
     if file_env != env_id:
@@ -399,6 +402,18 @@ def read_minari(source):
     }
 
 
+def check_minari_id(dataset_id):
+    """Before any training: ConfigError unless `dataset_id` has Minari's form and is new in the local store."""
+    minari = _minari()
+    from minari.dataset.minari_dataset import DATASET_ID_RE
+    match = DATASET_ID_RE.fullmatch(dataset_id)
+    if match is None or match.group("version") is None:
+        raise ConfigError(f"--minari {dataset_id}: a Minari dataset id has the form [namespace/]name-vN, "
+                          "e.g. sail/hopper/teacher-v0")
+    if dataset_id in minari.list_local_datasets():
+        raise ConfigError(f"the Minari dataset {dataset_id} exists already in the local store")
+
+
 def save_minari(dataset_id, episodes, env_id):
     """Writes episodes (dicts as envs.rollout returns them) as a Minari dataset in the local store."""
     minari = _minari()
@@ -414,7 +429,7 @@ def save_minari(dataset_id, episodes, env_id):
             return minari.create_dataset_from_buffers(
                 dataset_id, buffers, env=env_id, eval_env=env_id, algorithm_name="make_demos.py (TD3 teacher)",
                 description=f"{len(episodes)} episodes of a sub-optimal TD3 teacher on {env_id}, recorded by make_demos.py")
-    except ValueError as e:  # e.g. the id exists already
+    except Exception as e:  # e.g. the id was taken meanwhile
         raise ConfigError(f"cannot write the Minari dataset {dataset_id}: {first_line(e)}") from None
 
 

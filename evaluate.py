@@ -32,20 +32,25 @@ def deploys_target(args):
     return getattr(args, "deploy", "actor") == "target"
 
 
-def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0):
+def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0, deploy=None):
     """Plays `episodes` episodes of RUN_DIR's saved actor (model.pt, else checkpoint.pt) on an env
-    seeded with `seed`; prints the return and length of each, then their mean. With `video`
+    seeded with `seed`; prints the return and length of each, then their mean. `deploy` (actor or
+    target) picks the other of the two than the run deployed; only checkpoint.pt holds both. With `video`
     (a .gif or .mp4 path) the episodes are rendered headless into it, one after another. With
     `noise`, the actor acts as in training (Gaussian noise of that std, seeded with `seed`): what
     the promotion bar sees of it."""
     if video is not None:
         check_video_path(video)
         os.environ.setdefault("MUJOCO_GL", "egl")  # headless; MUJOCO_GL=osmesa where EGL is missing
-    path = next((p for p in (os.path.join(run_dir, n) for n in ("model.pt", "checkpoint.pt")) if os.path.isfile(p)),
-                None)
-    if path is None or not os.path.isfile(os.path.join(run_dir, "config.json")):
-        raise ConfigError(f"--evaluate {run_dir}: no config.json with model.pt or checkpoint.pt there")
+    if not os.path.isfile(os.path.join(run_dir, "config.json")):
+        raise ConfigError(f"--evaluate {run_dir}: no config.json there (not a run folder)")
     config = plumbing.read_config(run_dir)
+    target = deploys_target(config) if deploy is None else deploy == "target"
+    names = ("model.pt", "checkpoint.pt") if target == deploys_target(config) else ("checkpoint.pt",)
+    path = next((p for p in (os.path.join(run_dir, n) for n in names) if os.path.isfile(p)), None)
+    if path is None:
+        raise ConfigError(f"--evaluate {run_dir}: no {' or '.join(names)} there"
+                          + ("" if len(names) == 2 else f" (model.pt holds the actor the run deployed, not --deploy {deploy})"))
     saved = plumbing.load_checkpoint(path)  # on the CPU, also a run made with --device cuda
     torch.set_num_threads(threads)
     try:
@@ -59,7 +64,7 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0):
                 env.action_space.high, hidden=config.hidden)
     try:
         agent.actor.load_state_dict(saved["actor"] if "actor" in saved else
-                                    saved["agent"]["actor_target" if deploys_target(config) else "actor"])
+                                    saved["agent"]["actor_target" if target else "actor"])
     except (RuntimeError, KeyError, TypeError) as e:  # config.json and the saved networks disagree (sizes, env)
         raise ConfigError(f"{path} does not fit {run_dir}/config.json: {plumbing.first_line(e)}") from None
     returns, frames, fps = [], [], env.metadata.get("render_fps", 30)

@@ -22,7 +22,6 @@ if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, n
     # since an exception raised in Python code that torch's C++ import calls aborts the process
     signal.signal(signal.SIGINT, lambda signum, frame: os._exit(print("gail.py: interrupted", file=sys.stderr, flush=True) or 130))
 
-import argparse
 import dataclasses
 import math
 import time
@@ -77,7 +76,7 @@ def parse_args(argv=None):
     p.add_argument("--eval-freq", type=positive_int, default=10_000, help="env steps between evaluations "
                    "(at the end of the batch that crosses them)")
     p.add_argument("--eval-episodes", type=positive_int, default=5, help="episodes per evaluation")
-    p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads")
+    p.add_argument("--threads", type=plumbing.threads, default=1, help="torch CPU threads")
     p.add_argument("--output-dir", default="runs", help="parent folder of the run folder")
     p.add_argument("--run-name", help="run folder name (default: <env>__<gail|pofd>__<seed>__<time>)")
     p.add_argument("--checkpoint-freq", type=positive_int, default=50_000, help="env steps between checkpoints")
@@ -89,6 +88,11 @@ def parse_args(argv=None):
     args.given = p.given_flags(argv)
     if not (0.0 < args.gamma <= 1.0 and 0.0 <= args.gae_lambda <= 1.0):
         p.error("--gamma must be in (0, 1] and --gae-lambda in [0, 1]")
+    if args.steps_per_batch < 2:
+        p.error("--steps-per-batch must be at least 2: the advantages are normalised by their spread over the batch")
+    if args.eval_freq > args.total_timesteps and not args.resume:
+        p.error(f"--eval-freq {args.eval_freq} is more than --total-timesteps {args.total_timesteps}: "
+                "the run would write no progress.csv")
     args.disc_batch_size = args.disc_batch_size or args.steps_per_batch
     if args.steps_per_batch < args.disc_batch_size:
         p.error("--steps-per-batch must be at least --disc-batch-size")
@@ -227,6 +231,7 @@ def train(args):
             run_dir = args.resume
             saved = plumbing.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts)
             s, obs = LoopState(**saved["loop"]), saved["obs"]
+            plumbing.record_resume(run_dir, args, s.global_step, RESUMABLE)
         else:
             s, (obs, _) = LoopState(), env.reset()
             config = {k: v for k, v in vars(args).items() if k != "given"}

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 import plumbing
-from buffers import ReplayBuffer, _minari, default_demo_path, save_demos, save_minari
+from buffers import ReplayBuffer, check_minari_id, default_demo_path, save_demos, save_minari
 from evaluate import save_model
 from envs import EnvState, make_env, rollout
 from plumbing import ConfigError
@@ -74,7 +74,7 @@ def parse_args(argv=None):
     p.add_argument("--lr", type=plumbing.non_negative_float, default=3e-4,
                    help="Adam learning rate of actor and critic")
     p.add_argument("--gamma", type=float, default=0.99, help="discount")
-    p.add_argument("--threads", type=plumbing.positive_int, default=1, help="torch CPU threads")
+    p.add_argument("--threads", type=plumbing.threads, default=1, help="torch CPU threads")
     p.add_argument("--checkpoint", help="checkpoint file, written every --checkpoint-freq steps and "
                    "resumed from if it exists (default: none)")
     p.add_argument("--checkpoint-freq", type=plumbing.positive_int, default=25_000, help="env steps between checkpoints")
@@ -87,8 +87,10 @@ def parse_args(argv=None):
                 p.error(str(e))
             p.error(f"no default band for {args.env}: give --band LOW HIGH")
         args.band = BANDS[args.env]
-    if args.band[0] >= args.band[1]:
-        p.error("--band needs LOW < HIGH")
+    if not args.band[0] < args.band[1]:  # also nan
+        p.error(f"--band needs LOW < HIGH, got {args.band[0]} {args.band[1]}")
+    if not 0.0 < args.gamma <= 1.0:
+        p.error(f"--gamma must be in (0, 1], got {args.gamma}")
     if args.learning_starts < 0:
         p.error("--learning-starts must be >= 0")
     args.output = args.output or default_demo_path(args.env)
@@ -141,8 +143,8 @@ def train(args):
     if args.save_teacher:
         plumbing.check_writable(os.path.join(args.save_teacher, "model.pt"))
         os.rmdir(args.save_teacher)  # made by the check: the folder is written only with the teacher in it
-    if args.minari and args.minari in _minari().list_local_datasets():
-        raise ConfigError(f"the Minari dataset {args.minari} exists already in the local store")
+    if args.minari:
+        check_minari_id(args.minari)
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     low, high = env.action_space.low, env.action_space.high
     agent = TD3(obs_dim, act_dim, low, high, hidden=args.hidden, lr=args.lr, gamma=args.gamma)

@@ -28,13 +28,14 @@ from collections import defaultdict
 
 import numpy as np
 
-from buffers import default_demo_path
-from plumbing import ArgumentParser, atomic_write
+import plumbing
+from buffers import default_demo_path, read_minari
+from plumbing import ArgumentParser, ConfigError, atomic_write, first_line
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def parse_args():
+def parse_args(argv=None):
     p = ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="*", help="run folders (default: results/runs/*)")
     p.add_argument("--output-dir", help="where the PNGs and results.md go (default: results/ for the committed "
@@ -44,7 +45,7 @@ def parse_args():
                    help="the early phase: the table's last column averages the evaluations up to here")
     p.add_argument("--min-steps", type=int, default=0,
                    help="leave out runs (not BC) with fewer env steps, e.g. those still running")
-    args = p.parse_args()
+    args = p.parse_args(argv)
     # the committed figures and table are rewritten only from the committed runs
     args.output_dir = args.output_dir or ("plots" if args.runs else os.path.join(HERE, "results"))
     args.runs = args.runs or sorted(glob.glob(os.path.join(HERE, "results", "runs", "*")))
@@ -55,6 +56,8 @@ def parse_args():
             p.error(f"{run} is not a run folder (no config.json and progress.csv)")
     if args.last <= 0 or args.early_steps <= 0:
         p.error("--last and --early-steps must be positive")
+    if os.path.exists(args.output_dir) and not os.path.isdir(args.output_dir):
+        p.error(f"--output-dir {args.output_dir} is a file")
     return args
 
 
@@ -118,15 +121,29 @@ def differences(config, defaults):
 def teacher_return(config):
     """Mean return of the teacher episodes the run used (the first --num-demos of its file)."""
     path = config.get("demos") or default_demo_path(config["env"])
-    with np.load(path, allow_pickle=False) as demos:
-        return float(np.mean(demos["episode_returns"][:config["num_demos"]]))
+    try:
+        if os.path.isfile(path):
+            with np.load(path, allow_pickle=False) as demos:
+                returns = demos["episode_returns"]
+        else:  # a Minari dataset, its folder or its id in the local store
+            returns = read_minari(path)["episode_returns"]
+        return float(np.mean(returns[:config["num_demos"]]))
+    except ConfigError:
+        raise
+    except Exception as e:
+        raise ConfigError(f"cannot read the teacher's returns from {path}: {first_line(e)}") from None
 
 
 def load_run(run_dir):
-    with open(os.path.join(run_dir, "config.json")) as f:
-        config = json.load(f)
-    with open(os.path.join(run_dir, "progress.csv")) as f:
-        rows = [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+    try:
+        with open(os.path.join(run_dir, "config.json")) as f:
+            config = json.load(f)
+        with open(os.path.join(run_dir, "progress.csv")) as f:
+            rows = [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+    except Exception as e:
+        raise ConfigError(f"cannot read the run {run_dir}: {first_line(e)}") from None
+    if not isinstance(config, dict) or not {"env", "algo"} <= set(config):
+        raise ConfigError(f"{run_dir}/config.json is not a run's config (no env and algo)")
     return config, rows
 
 
@@ -187,8 +204,7 @@ def plot_env(env_id, num_demos, methods, teacher, path, colors):
     plt.close(fig)
 
 
-def main():
-    args = parse_args()
+def write_results(args):
     by_env = defaultdict(lambda: defaultdict(list))
     teachers = {}
     left_out = []
@@ -240,7 +256,12 @@ def main():
     atomic_write(path, lambda f: f.write("\n".join(lines).encode()))
     print("\n".join(lines))
     print(f"\nwrote {path} and the figures beside it", file=sys.stderr)
+    return 0
+
+
+def main(argv=None):
+    return plumbing.run_main("plot.py", write_results, parse_args(argv))
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -68,9 +68,21 @@ def seed(text):
 
 
 def non_negative_float(text):
+    """argparse type: a finite number >= 0 (nan and inf are refused: a learning rate of inf would
+    only show up later as a diverged loss)."""
     value = float(text)
-    if not value >= 0:  # also nan
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
+def threads(text):
+    """argparse type: torch's CPU threads, 1 to 4x the CPUs here (far more makes the thread pools fail
+    to start, a crash rather than an error)."""
+    value = positive_int(text)
+    most = 4 * (os.cpu_count() or 1)
+    if value > most:
+        raise argparse.ArgumentTypeError(f"must be at most {most} (4x the {os.cpu_count()} CPUs here), got {value}")
     return value
 
 
@@ -119,6 +131,8 @@ def atomic_write(path, write):
 def check_writable(path):
     """ConfigError unless a file can be created at `path` (checked before any training)."""
     folder = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(path):
+        raise ConfigError(f"cannot write {path}: it is a folder")
     try:
         os.makedirs(folder, exist_ok=True)
         probe = os.path.join(folder, f".write-test{os.getpid()}")
@@ -308,9 +322,21 @@ def resume_config(run_dir, args, given, changeable, predating=None):
     saved = {k: v for k, v in config.items() if k in vars(args)}  # the command line, the given set: not flags
     saved = (predating or {}) | saved
     anew = {name: getattr(args, name) for name in changeable if name in given}
-    if anew:  # config.json says what the run is now, e.g. the 1M steps it was extended to
-        atomic_write(path, lambda f: f.write(json.dumps(config | anew, indent=2).encode()))
     return argparse.Namespace(**(vars(args) | saved | anew | {"resume": run_dir}))
+
+
+def record_resume(run_dir, args, global_step, changeable):
+    """Once a resumed run's checkpoint has loaded (so that a refused --resume leaves the folder as it
+    was): refuses a --total-timesteps below the steps already taken, and writes into config.json the
+    `changeable` flags as the run now has them, e.g. the 1M steps it was extended to."""
+    if args.total_timesteps < global_step:
+        raise ConfigError(f"--resume {run_dir}: --total-timesteps {args.total_timesteps} is below the "
+                          f"{global_step} steps the run has taken")
+    config = vars(read_config(run_dir))
+    now = {name: getattr(args, name) for name in changeable}
+    if any(config.get(name) != value for name, value in now.items()):
+        atomic_write(os.path.join(run_dir, "config.json"),
+                     lambda f: f.write(json.dumps(config | now, indent=2).encode()))
 
 
 class StopRequest:

@@ -122,7 +122,7 @@ def parse_args(argv=None):
     g.add_argument("--demos", help="demo file (default: demos/<env>.npz)")
     g.add_argument("--num-demos", type=positive_int, default=1, help="teacher episodes used from the demo file")
     g.add_argument("--device", choices=["cpu", "cuda", "auto"], default="cpu", help="torch device")
-    g.add_argument("--threads", type=positive_int, default=2, help="torch CPU threads")
+    g.add_argument("--threads", type=plumbing.threads, default=2, help="torch CPU threads")
     g.add_argument("--kernels", choices=["auto", "torch", "onednn"], default="auto",
                    help="CPU matmul kernels (cpu_kernels.py); auto times both at start-up")
     g.add_argument("--output-dir", default="runs", help="parent folder of the run folder")
@@ -140,7 +140,8 @@ def parse_args(argv=None):
     g.add_argument("--eval-noise", type=non_negative_float, default=0.0, help="with --evaluate: the std of "
                    "Gaussian noise added to the actions, as --exploration-noise in training (0: deterministic)")
     g.add_argument("--deploy", choices=["actor", "target"], default="actor", help="the policy that eval_return "
-                   "scores, model.pt holds and --evaluate plays: the actor or its Polyak-averaged target copy")
+                   "scores, model.pt holds and --evaluate plays: the actor or its Polyak-averaged target copy (with "
+                   "--evaluate: the run's own unless given)")
 
     g = p.add_argument_group("TD3 learner")
     g.add_argument("--hidden", type=positive_int, nargs="+", default=[256, 256], help="actor/critic hidden sizes")
@@ -585,6 +586,7 @@ def train(args):
             saved = plumbing.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts)
             s, obs, stats = LoopState(**saved["loop"]), saved["obs"], dict(saved.get("stats", {}))
             episode_noise = saved.get("episode_noise")
+            plumbing.record_resume(run_dir, args, s.global_step, RESUMABLE)
         else:
             kernels = cpu_kernels.choose(args.kernels, [agent.actor.net, agent.critic.q1.net, disc.net],
                                          args.batch_size, device)
@@ -747,8 +749,9 @@ def train(args):
 def main(argv=None):
     args = parse_args(argv)
     if args.evaluate:
-        return plumbing.run_main("sail.py", lambda a: evaluate_run(a.evaluate, a.eval_episodes, a.seed, a.threads,
-                                                                   a.video, a.eval_noise), args)
+        return plumbing.run_main("sail.py", lambda a: evaluate_run(
+            a.evaluate, a.eval_episodes, a.seed, a.threads, a.video, a.eval_noise,
+            a.deploy if "deploy" in a.given else None), args)
     return plumbing.run_main("sail.py", train, args)
 
 

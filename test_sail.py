@@ -444,6 +444,20 @@ def test_each_bad_demo_file_gives_a_clear_error(tmp_path):
         load_demos(path, "Hopper-v5", 11, 3)
     with pytest.raises(ConfigError, match="is a folder"):
         load_demos(str(tmp_path), "Hopper-v5", 11, 3)
+    for key, value in (("episode_returns", np.float64(3.0)), ("rewards", np.array(["a", "b"]))):
+        np.savez(path, **(data | {key: value}))  # 0-d, or not numbers
+        with pytest.raises(ConfigError, match=f"{key} must be arrays of numbers"):
+            load_demos(path, "Hopper-v5", 11, 3)
+    with open(path, "wb") as f:  # a plain .npy array under the .npz name
+        np.save(f, np.zeros(3))
+    with pytest.raises(ConfigError, match="not a readable"):
+        load_demos(path, "Hopper-v5", 11, 3)
+    np.savez_compressed(path, **data)
+    raw = bytearray(open(path, "rb").read())
+    raw[len(raw) // 2:len(raw) // 2 + 64] = bytes(64)  # damaged inside a compressed member: zlib's error
+    open(path, "wb").write(bytes(raw))
+    with pytest.raises(ConfigError, match="not a readable"):
+        load_demos(path, "Hopper-v5", 11, 3)
 
 
 def test_minari_datasets_round_trip_as_teacher_episodes(tmp_path, monkeypatch):
@@ -650,7 +664,10 @@ def test_make_demos_bad_input_is_one_line(capsys):
         ["--env", "NoSuchEnv-v5", "--band", "0", "1"], ["--env", "Hopper-v5", "--num-episodes", "0"],
         ["--env", "Pendulum-v1"],  # no default band
         ["--env", "Hopper-v5", "--seed", "-1"], ["--env", "Hopper-v5", "--exploration-noise", "-0.1"],
-        ["--env", "Hopper-v5", "--lr", "-1"],
+        ["--env", "Hopper-v5", "--lr", "-1"], ["--env", "Hopper-v5", "--gamma", "-5"],
+        ["--env", "Hopper-v5", "--band", "nan", "nan"],  # would fail only after the whole training budget
+        ["--env", "Hopper-v5", "--output", HERE, "--force"],  # a folder
+        ["--env", "Hopper-v5", "--output", os.devnull, "--force", "--minari", "no-version"],
         ["--env", "NoSuchEnv-v5"])]  # not reported as a missing band
     for proc in procs + [unknown]:
         assert_one_line_error(proc)
@@ -1183,7 +1200,7 @@ def test_return_scale_rank_is_the_share_of_finished_transitions_that_scored_no_h
     assert float(minmax[2] - minmax[1]) == pytest.approx(1 / 906, abs=1e-6)
 
 
-def test_deploy_target_changes_what_is_scored_and_saved_not_what_is_learned(tmp_path, poor_hopper_demos):
+def test_deploy_target_changes_what_is_scored_and_saved_not_what_is_learned(tmp_path, poor_hopper_demos, capsys):
     common = ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--output-dir", str(tmp_path), "--save-model",
               "--hidden", "32", "32", "--disc-hidden", "32", "32", "--threads", "1", "--eval-episodes", "1",
               "--total-timesteps", "1600", "--learning-starts", "1000", "--eval-freq", "400", "--disc-freq", "200",
@@ -1200,6 +1217,18 @@ def test_deploy_target_changes_what_is_scored_and_saved_not_what_is_learned(tmp_
     checkpoint = torch.load(tmp_path / "target" / "checkpoint.pt", weights_only=True)
     model = torch.load(tmp_path / "target" / "model.pt", weights_only=True)
     assert all(torch.equal(model["actor"][k], checkpoint["agent"]["actor_target"][k]) for k in model["actor"])
+    # --evaluate plays the run's own choice, or the one --deploy names (the other from checkpoint.pt)
+    import sail
+
+    def evaluated(run, *flags):
+        capsys.readouterr()
+        assert sail.main(["--evaluate", str(tmp_path / run), "--eval-episodes", "1", "--threads", "1", *flags]) == 0
+        return capsys.readouterr().out.splitlines()[-1]
+    target_run = evaluated("target")
+    assert "model.pt" in target_run and target_run.split(": mean")[1] == evaluated("actor", "--deploy", "target").split(": mean")[1]
+    actor_of_target_run = evaluated("target", "--deploy", "actor")
+    assert "checkpoint.pt" in actor_of_target_run
+    assert actor_of_target_run.split(": mean")[1] == evaluated("actor").split(": mean")[1]
 
 
 @pytest.fixture(scope="module")
@@ -1657,6 +1686,8 @@ def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos, caps
                  ["--eval-freq", "5000", "--total-timesteps", "1000", *out],
                  ["--action-budget", "teacher", *out],  # without --action-l2: nothing to leave free
                  ["--seed", "-1", *out], ["--seed", str(2**32), *out],  # numpy, gymnasium or torch would refuse it
+                 ["--lr", "inf", *out],  # would only show up as a diverged loss
+                 ["--threads", "100000", *out],  # torch's thread pools would fail to start: a crash
                  ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--output-dir", str(blocker / "runs")]):
         assert_one_line_error(main_in_process(sail.main, argv, capsys))
     assert not os.path.exists(tmp_path / "runs")  # nothing was started
@@ -1755,6 +1786,19 @@ def test_ctrl_c_while_the_libraries_load_is_one_line_and_starts_nothing(tmp_path
     assert not (tmp_path / "runs").exists()
 
 
+def test_a_refused_resume_leaves_the_run_folder_as_it_was(tmp_path, straight_run, capsys):
+    import shutil
+    import sail
+    run = tmp_path / "run"
+    shutil.copytree(straight_run, run)
+    config = (run / "config.json").read_text()
+    # fewer steps than the run has taken (1000), then a checkpoint that cannot be read
+    assert_one_line_error(main_in_process(sail.main, ["--resume", str(run), "--total-timesteps", "500"], capsys))
+    (run / "checkpoint.pt").write_bytes((run / "checkpoint.pt").read_bytes()[:1000])
+    assert_one_line_error(main_in_process(sail.main, ["--resume", str(run), "--total-timesteps", "5000"], capsys))
+    assert (run / "config.json").read_text() == config
+
+
 def test_resume_takes_flags_given_with_their_default_values(tmp_path):
     """`--resume RUN --total-timesteps 1000000` extends a 600-step run to 1M steps although
     1000000 is the parser's default: what counts is that the flag was written."""
@@ -1769,7 +1813,8 @@ def test_resume_takes_flags_given_with_their_default_values(tmp_path):
     assert args.given == {"resume", "total_timesteps", "threads"}
     resumed = plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE)
     assert (resumed.total_timesteps, resumed.threads, resumed.eval_freq) == (1_000_000, 2, 200)
-    config = json.loads((run / "config.json").read_text())  # and the run folder says so
+    plumbing.record_resume(str(run), resumed, 600, sail.RESUMABLE)  # once the checkpoint has loaded
+    config = json.loads((run / "config.json").read_text())  # the run folder says so
     assert (config["total_timesteps"], config["threads"], config["eval_freq"]) == (1_000_000, 2, 200)
 
 
@@ -1840,7 +1885,7 @@ def test_sail_paper_is_the_defaults_with_each_addition_turned_off_and_the_baseli
         assert args.return_decomposition == (1.0 if algo == "rrd" else 0.0) and args.decomposition_unit == "range"
 
 
-def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_path):
+def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_path, capsys):
     """Two seeds of made-up CSVs: the table's numbers are computed from them as README says."""
     runs = []
     for seed, returns, num_demos, gamma in ((1, [100, 900, 1400, 1500, 1600, 1700, 1800], 1, 0.99),
@@ -1881,6 +1926,21 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
     assert "| SAIL (gamma 0.995) | 1 | 70k | 520 +- 0 | 520 |  | 0.39x |" in table
     assert sorted(p.name for p in (tmp_path / "plots").glob("*.png")) == ["Hopper-v5-4demos.png",
                                                                          "Hopper-v5-ablations.png", "Hopper-v5.png"]
+    # a damaged run or a file as the output folder: one line, nothing written
+    import shutil
+
+    import plot
+    broken = tmp_path / "broken"
+    shutil.copytree(runs[0], broken)
+    (broken / "progress.csv").write_text((broken / "progress.csv").read_text().replace("100", "abc", 1))
+    damaged_config = tmp_path / "damaged-config"
+    shutil.copytree(runs[0], damaged_config)
+    (damaged_config / "config.json").write_text("{")
+    out = ["--output-dir", str(tmp_path / "out")]
+    for argv in ([str(broken), *out], [str(damaged_config), *out],
+                 [runs[0], "--output-dir", os.path.join(HERE, "README.md")]):
+        assert_one_line_error(main_in_process(plot.main, argv, capsys))
+    assert not os.path.exists(tmp_path / "out")
     from plot import method_name
     assert method_name({"algo": "gail", "gamma": 0.995}) == "GAIL"  # gail.py's own default, not a variant
     assert method_name(DEFAULT_CONFIG) == "SAIL"
@@ -1971,6 +2031,9 @@ def test_gail_and_pofd_smoke_runs_write_the_csv_and_resume_exactly(tmp_path, poo
                 == [{k: v for k, v in r.items() if k not in drop} for r in read_csv(tmp_path / algo / "b")])
         assert_one_line_error(main_in_process(gail.main, ["--resume", str(tmp_path / algo / "b"), "--max-kl", "0.05"],
                                               capsys))
+    for bad in (["--steps-per-batch", "1"], ["--max-kl", "inf"], ["--eval-freq", "5000", "--total-timesteps", "1000"]):
+        assert_one_line_error(main_in_process(gail.main, [*common["gail"][1:], "--run-name", "c", *bad], capsys))
+    assert not os.path.exists(tmp_path / "gail" / "c")
 
 
 def test_gail_imitates_a_good_teacher_on_a_small_task(tmp_path):
@@ -2034,6 +2097,8 @@ def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path, c
         assert main_in_process(grid_module.main, ["task", "smoke", runs, str(i), "--dry-run"],
                                capsys).stdout.strip() == line
     assert_one_line_error(main_in_process(grid_module.main, ["task", "smoke", runs, "3", "--dry-run"], capsys))
+    assert_one_line_error(main_in_process(grid_module.main, ["run", runs], capsys))  # no NAME and SCRIPT
+    assert_one_line_error(main_in_process(grid_module.main, ["local", "smoke", grid], capsys))  # a file
     # locally through GNU parallel (a second call starts nothing: its job log); beside it, a run stopped
     # half-way, which continues from its checkpoint when its line runs again
     flags = lines[0].split(" sail.py ")[1].split()

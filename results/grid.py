@@ -281,6 +281,9 @@ cd {repo}
 
 def main(argv):
     if argv[:1] == ["run"]:  # run RUNS_DIR NAME SCRIPT FLAGS... (the script's own flags follow)
+        if len(argv) < 4:
+            print("grid.py: error: run needs RUNS_DIR NAME SCRIPT [FLAGS...]", file=sys.stderr)
+            return 2
         return run(argv[1], argv[2], argv[3], argv[4:])
     p = ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("action", choices=["list", "local", "slurm", "task"])
@@ -291,6 +294,8 @@ def main(argv):
     p.add_argument("--dry-run", action="store_true", help="task: print the command instead of running it")
     args = p.parse_args(argv)
     runs_dir = os.path.abspath(args.runs_dir or os.path.join(REPO, "runs", args.grid))
+    if os.path.exists(runs_dir) and not os.path.isdir(runs_dir):
+        p.error(f"{runs_dir} is a file, not a folder for the runs")
     lines = commands(args.grid, runs_dir)
     if args.action == "list":
         print("\n".join(lines))
