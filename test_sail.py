@@ -658,7 +658,7 @@ def test_make_demos_smoke_run_writes_a_loadable_file(tmp_path):
     assert len(load_demos(str(out), "Hopper-v5", 11, 3)) == 2
 
 
-def test_make_demos_bad_input_is_one_line(capsys):
+def test_make_demos_bad_input_is_one_line(tmp_path, capsys):
     import make_demos
     *procs, unknown = [main_in_process(make_demos.main, argv, capsys) for argv in (
         ["--env", "NoSuchEnv-v5", "--band", "0", "1"], ["--env", "Hopper-v5", "--num-episodes", "0"],
@@ -667,7 +667,7 @@ def test_make_demos_bad_input_is_one_line(capsys):
         ["--env", "Hopper-v5", "--lr", "-1"], ["--env", "Hopper-v5", "--gamma", "-5"],
         ["--env", "Hopper-v5", "--band", "nan", "nan"],  # would fail only after the whole training budget
         ["--env", "Hopper-v5", "--output", HERE, "--force"],  # a folder
-        ["--env", "Hopper-v5", "--output", os.devnull, "--force", "--minari", "no-version"],
+        ["--env", "Hopper-v5", "--output", str(tmp_path / "d.npz"), "--minari", "no-version"],
         ["--env", "NoSuchEnv-v5"])]  # not reported as a missing band
     for proc in procs + [unknown]:
         assert_one_line_error(proc)
