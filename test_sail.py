@@ -1786,6 +1786,18 @@ def test_ctrl_c_while_the_libraries_load_is_one_line_and_starts_nothing(tmp_path
     assert not (tmp_path / "runs").exists()
 
 
+def test_readme_flag_table_lists_every_sail_py_flag(capsys, monkeypatch):
+    import sail
+    monkeypatch.setenv("COLUMNS", "10000")  # argparse's help on one line per flag
+    help_text = main_in_process(sail.main, ["--help"], capsys).stdout
+    flags = set(re.findall(r"(?<![\w-])(--[a-z0-9][a-z0-9-]*)", help_text)) - {"--help"}
+    readme = open(os.path.join(HERE, "README.md")).read()
+    table = readme.split("### Flags")[1].split("\n### ")[0]
+    documented = set(re.findall(r"`(--[a-z0-9-]+)", table))
+    assert len(flags) > 60 and flags - documented == set(), flags - documented
+    assert documented - flags <= {"--bc-steps"}  # bc.py's, named in the table's introduction
+
+
 def test_a_refused_resume_leaves_the_run_folder_as_it_was(tmp_path, straight_run, capsys):
     import shutil
     import sail
