@@ -2136,7 +2136,7 @@ def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
     checked = 0
     for entries in load_grid_module().GRIDS.values():
         for name, script, flags in entries:
-            for folder in ("runs", os.path.join("long", "runs")):
+            for folder in ("runs", os.path.join("long", "runs"), os.path.join("decide", "runs")):
                 path = os.path.join(HERE, "results", folder, name, "config.json")
                 if script != "sail.py" or not os.path.isfile(path):
                     continue
