@@ -33,11 +33,11 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 import cpu_kernels
+import plumbing
 import sail
 import td3
 from buffers import ReplayBuffer, TeacherBuffer
 from envs import make_env
-import plumbing
 from plumbing import ArgumentParser, cpu_model, positive_int
 
 

@@ -49,8 +49,8 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0, deploy
     names = ("model.pt", "checkpoint.pt") if target == deploys_target(config) else ("checkpoint.pt",)
     path = next((p for p in (os.path.join(run_dir, n) for n in names) if os.path.isfile(p)), None)
     if path is None:
-        raise ConfigError(f"--evaluate {run_dir}: no {' or '.join(names)} there"
-                          + ("" if len(names) == 2 else f" (model.pt holds the actor the run deployed, not --deploy {deploy})"))
+        why = "" if len(names) == 2 else f" (model.pt holds the actor the run deployed, not --deploy {deploy})"
+        raise ConfigError(f"--evaluate {run_dir}: no {' or '.join(names)} there{why}")
     saved = plumbing.load_checkpoint(path)  # on the CPU, also a run made with --device cuda
     torch.set_num_threads(threads)
     try:
