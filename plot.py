@@ -115,7 +115,15 @@ def differences(config, defaults):
              if bool(value[flag]) != bool(defaults[flag])]
     return flags + [setting(key, value[key]) for key, default in defaults.items()
                     if key not in SETUP_FLAGS and key not in ABLATION_FLAGS and value[key] != default
-                    and not (key == "on_policy_from" and not value["on_policy_disc"])]  # moot without it
+                    and not moot(key, value)]
+
+
+def moot(key, value):
+    """A flag that means nothing beside the others' values: --on-policy-from without --on-policy-disc, the learned
+    action cost without the return decomposition, and the actor's share of it without that cost."""
+    return ((key == "on_policy_from" and not value["on_policy_disc"])
+            or (key == "decomposition_action_cost" and not value["return_decomposition"])
+            or (key == "actor_action_cost" and not (value["return_decomposition"] and value["decomposition_action_cost"])))
 
 
 def teacher_return(config):

@@ -22,9 +22,9 @@ error and (8) the deterministic policy gradient on the mixed batch. The paper's 
 flags (--fixed-alpha, --no-lfd, --no-adaptation, --on-policy-from start); DAC and TD3 on the
 sparse reward are presets of the same loop (--algo dac, td3); behaviour cloning is bc.py.
 
-sail.py's defaults add five things to the paper, each a flag that turns it off; together they
-ended above the paper's SAIL with the return bonus alone in every same-seed pair we ran
-(README's Results).
+sail.py's defaults add six things to the paper, each a flag that turns it off; the first five
+together ended above the paper's SAIL with the return bonus alone in every same-seed pair we ran,
+and the sixth was made a default by a grid whose rule was fixed before its runs (README's Results).
 `--algo sail-paper` is the paper's SAIL, exactly.
 - The return bonus (--return-bonus, beta = 1). D's reward only says "look like R_E", so once the
   agent does, only a lucky noisy episode that beats R_E's worst moves it on. The bonus credits
@@ -40,6 +40,10 @@ ended above the paper's SAIL with the return bonus alone in every same-seed pair
   of R_B, whose old, poor steps it would keep rewarding the agent for being unlike.
 - D's actions normalised as its states (--disc-action-norm), so that D sees how much control
   the agent spends and not only where it goes.
+- A learned action cost (--decomposition-action-cost, --actor-action-cost): the decomposition's
+  reward also subtracts c ||a||^2 with c >= 0 learned from the episodic returns, and the actor is
+  charged that cost beside Q, whose slope in the action is too flat to carry it. Where control
+  costs little, c falls to 0 and this is the five above.
 All of them use only what the sparse env gives at an episode's end.
 """
 
@@ -74,7 +78,8 @@ from td3 import TD3, colored_noise, make_adam, mlp
 # SAIL with this repo's additions (the module docstring); the others keep the published methods'
 # plain TD3 learner and off-policy D, whatever those defaults become.
 PLAIN_LEARNER = {"critic_layer_norm": False, "on_policy_disc": False, "on_policy_from": "start",
-                 "return_decomposition": 0.0, "decomposition_unit": "range", "disc_action_norm": False}
+                 "return_decomposition": 0.0, "decomposition_unit": "range", "disc_action_norm": False,
+                 "decomposition_action_cost": False, "actor_action_cost": False}
 PRESETS = {
     "sail": {},
     # the paper's SAIL, Algorithm 1 as published: none of this repo's additions
@@ -192,12 +197,14 @@ def parse_args(argv=None):
                    "reward is divided by: range = the range of episodic returns seen over the env's time limit; rate "
                    "= the range of per-step returns (return / length) seen: the same where every episode runs to the "
                    "limit, a larger unit where episodes end early, where range's unit lets r outweigh D's reward")
-    g.add_argument("--decomposition-action-cost", action="store_true", help="the learned reward also subtracts "
-                   "c ||a||^2, a quadratic action cost whose weight c >= 0 is learned with it from the episodic returns "
-                   "(the form of gymnasium's control cost), which the network alone learns only in part")
-    g.add_argument("--actor-action-cost", action="store_true", help="the actor's loss also charges that learned "
-                   "cost, c ||a||^2 in the critic's reward unit, beside Q: its exact slope in the action, which Q, "
-                   "nearly flat in the action, carries only in part (needs --decomposition-action-cost)")
+    g.add_argument("--decomposition-action-cost", action=argparse.BooleanOptionalAction, default=True,
+                   help="the learned reward also subtracts c ||a||^2, a quadratic action cost whose weight c >= 0 is "
+                   "learned with it from the episodic returns (the form of gymnasium's control cost), which the "
+                   "network alone learns only in part (off where --return-decomposition is 0)")
+    g.add_argument("--actor-action-cost", action=argparse.BooleanOptionalAction, default=True, help="the actor's "
+                   "loss also charges that learned cost, c ||a||^2 in the critic's reward unit, beside Q: its exact "
+                   "slope in the action, which Q, nearly flat in the action, carries only in part (off where "
+                   "--decomposition-action-cost is)")
     g.add_argument("--decomposition-subset", type=positive_int, default=64, help="steps drawn from each episode "
                    "per reward-model minibatch (RRD's K); --batch-size / K episodes per minibatch")
     g.add_argument("--time-feature", action=argparse.BooleanOptionalAction, default=True, help="append 1 - t/T to obs")
@@ -266,10 +273,16 @@ def check_args(p, args):
     if args.action_budget != "none" and not (args.action_l2 > 0 and args.reward in ("sail", "airl")):
         p.error(f"--action-budget {args.action_budget} is what --action-l2 leaves free: it needs --action-l2 > 0 "
                 "and demos (not --reward env or none)")
+    # the learned action cost is part of the decomposition: a default that has nothing to act on turns off
+    # with it; asked for by name, it is an error
     if args.decomposition_action_cost and args.return_decomposition <= 0:
-        p.error("--decomposition-action-cost is part of the learned reward: it needs --return-decomposition > 0")
+        if "decomposition_action_cost" in args.given:
+            p.error("--decomposition-action-cost is part of the learned reward: it needs --return-decomposition > 0")
+        args.decomposition_action_cost = False
     if args.actor_action_cost and not args.decomposition_action_cost:
-        p.error("--actor-action-cost charges the learned action cost: it needs --decomposition-action-cost")
+        if "actor_action_cost" in args.given:
+            p.error("--actor-action-cost charges the learned action cost: it needs --decomposition-action-cost")
+        args.actor_action_cost = False
     if args.return_decomposition > 0 and args.decomposition_subset > args.batch_size:
         p.error(f"--decomposition-subset {args.decomposition_subset} is more than --batch-size {args.batch_size}")
     if args.buffer_size < 1001:

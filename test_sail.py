@@ -1885,6 +1885,7 @@ DEFAULT_CONFIG = {k: v for k, v in vars(sail.parse_args([])).items() if k != "gi
 
 
 def test_sail_paper_is_the_defaults_with_each_addition_turned_off_and_the_baselines_keep_the_plain_learner():
+    # (--return-decomposition 0 also turns off the learned action cost, which is part of it)
     additions_off = ["--return-bonus", "0", "--return-decomposition", "0", "--no-critic-layer-norm", "--no-on-policy-disc",
                      "--no-disc-action-norm"]
     paper, off = vars(sail.parse_args(["--algo", "sail-paper"])), vars(sail.parse_args(additions_off))
@@ -1895,6 +1896,24 @@ def test_sail_paper_is_the_defaults_with_each_addition_turned_off_and_the_baseli
         args = sail.parse_args(["--algo", algo])
         assert not (args.critic_layer_norm or args.on_policy_disc or args.disc_action_norm), algo
         assert args.return_decomposition == (1.0 if algo == "rrd" else 0.0) and args.decomposition_unit == "range"
+        assert not (args.decomposition_action_cost or args.actor_action_cost), algo
+
+
+def test_the_learned_action_cost_is_a_default_that_turns_off_with_what_it_needs_unless_asked_for(capsys):
+    """The pair is on by default; with the decomposition (or the reward's cost) off, a default that has nothing
+    to act on turns off with it, while the same flag given by name is one error line."""
+    assert DEFAULT_CONFIG["decomposition_action_cost"] and DEFAULT_CONFIG["actor_action_cost"]
+    args = sail.parse_args(["--return-decomposition", "0"])
+    assert not (args.decomposition_action_cost or args.actor_action_cost)
+    args = sail.parse_args(["--no-decomposition-action-cost"])
+    assert not args.decomposition_action_cost and not args.actor_action_cost
+    args = sail.parse_args(["--no-actor-action-cost"])
+    assert args.decomposition_action_cost and not args.actor_action_cost
+    for argv, needs in ((["--return-decomposition", "0", "--decomposition-action-cost"], "--return-decomposition > 0"),
+                        (["--no-decomposition-action-cost", "--actor-action-cost"], "needs --decomposition-action-cost")):
+        with pytest.raises(SystemExit) as exit_info:
+            sail.parse_args(argv)
+        assert exit_info.value.code == 2 and needs in capsys.readouterr().err
 
 
 def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_path, capsys):
@@ -2136,7 +2155,7 @@ def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
     checked = 0
     for entries in load_grid_module().GRIDS.values():
         for name, script, flags in entries:
-            for folder in ("runs", os.path.join("long", "runs"), os.path.join("decide", "runs")):
+            for folder in ("runs", os.path.join("long", "runs")):
                 path = os.path.join(HERE, "results", folder, name, "config.json")
                 if script != "sail.py" or not os.path.isfile(path):
                     continue

@@ -38,8 +38,12 @@ BONUS = ("sail.py", [*PAPER, "--return-bonus", "1"])
 # the layer-normed critics with the on-policy D from the first promotion (several grids build on them)
 LN_ONPOLICY_FLAGS = ["--critic-layer-norm", "--on-policy-disc", "--on-policy-from", "promotion"]
 LN_ONPOLICY_PROMOTION = [*BONUS[1], *LN_ONPOLICY_FLAGS]
-# sail.py's defaults, written out as flags on that base
-DEFAULT_FLAGS = [*LN_ONPOLICY_FLAGS, "--return-decomposition", "1", "--decomposition-unit", "rate", "--disc-action-norm"]
+# the layer-normed critics, the on-policy D, the rate-unit return decomposition and D's normalised actions: with the
+# return bonus, sail.py's defaults until the learned action cost joined them (2026-11-28)
+DAN_FLAGS = [*LN_ONPOLICY_FLAGS, "--return-decomposition", "1", "--decomposition-unit", "rate", "--disc-action-norm"]
+ACTION_COST = ["--decomposition-action-cost", "--actor-action-cost"]
+# the earlier defaults on sail.py as it is now: the same without the learned action cost
+FIVE_ADDITIONS = [*DAN_FLAGS, "--no-decomposition-action-cost", "--no-actor-action-cost"]
 DAC = ("sail.py", [*OFF_POLICY, "--algo", "dac"])
 GRIDS = {
     # the runs behind README's tables of the paper's methods (300k env steps, 1 teacher episode)
@@ -168,7 +172,7 @@ GRIDS = {
     # control costs; an action penalty did, but held back the envs whose better gaits spend more
     "learning-disc-action-norm": grid(
         ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-        {"sail-ln-onpolicy-promotion-rrd1-rate-dan": ("sail.py", [*OFF_POLICY, *DEFAULT_FLAGS])}, [1, 2, 3]),
+        {"sail-ln-onpolicy-promotion-rrd1-rate-dan": ("sail.py", [*OFF_POLICY, *FIVE_ADDITIONS])}, [1, 2, 3]),
     # the same with a learned quadratic action cost in the decomposition's reward (--decomposition-action-cost): on
     # Ant-v5 D stayed blind to the actions' size even so, and the per-step reward model learned about a fifth of
     # what they cost (results/rrd_probe.py); refitted with the explicit term on the same R_B it learned c = 0.385
@@ -185,34 +189,33 @@ GRIDS = {
     # 577 (seed 3, 30 episodes; results/early_ends.py --rest-when-upside-down)
     "learning-actor-cost": grid(
         ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-        {"sail-dan-cost-actor": ("sail.py", [*OFF_POLICY, *DEFAULT_FLAGS, "--decomposition-action-cost",
-                                             "--actor-action-cost"])}, [1, 2, 3]),
+        {"sail-dan-cost-actor": ("sail.py", [*OFF_POLICY, *DAN_FLAGS, *ACTION_COST])}, [1, 2, 3]),
     # seeds 4 and 5 of sail.py's defaults and of that pair, on all five envs, so that the choice between them is
     # made on 5 seeds each. Fixed before these runs started (2026-11-27): the pair becomes the default if its
     # 5-seed mean (seeds 1-5, final = mean of the last 5 evaluations) is above the defaults' on at least three of
     # the five envs; otherwise it stays a flag
     "decide-actor-cost": grid(
         ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-        {"sail-ln-onpolicy-promotion-rrd1-rate-dan": ("sail.py", [*OFF_POLICY, *DEFAULT_FLAGS]),
-         "sail-dan-cost-actor": ("sail.py", [*OFF_POLICY, *DEFAULT_FLAGS, "--decomposition-action-cost",
-                                             "--actor-action-cost"])}, [4, 5]),
+        {"sail-ln-onpolicy-promotion-rrd1-rate-dan": ("sail.py", [*OFF_POLICY, *FIVE_ADDITIONS]),
+         "sail-dan-cost-actor": ("sail.py", [*OFF_POLICY, *DAN_FLAGS, *ACTION_COST])}, [4, 5]),
     # Ant-v5 without its 78 contact forces in the observation (27 entries, Ant-v4's default; the paper's Ant-v2
     # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
     "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*BONUS[1], "--no-contact-forces"])},
                                 [1, 2, 3]),
-    # sail.py's defaults for 1M env steps (a run's first 300k steps are the run of 300k with its seed: nothing
-    # in the learning depends on --total-timesteps, so a 300k run continued with --resume RUN_DIR
-    # --total-timesteps 1000000 is the same run as one started for 1M)
+    # the five additions (sail.py's defaults before the learned action cost) for 1M env steps (a run's first 300k
+    # steps are the run of 300k with its seed: nothing in the learning depends on --total-timesteps, so a 300k run
+    # continued with --resume RUN_DIR --total-timesteps 1000000 is the same run as one started for 1M)
     "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
-                 {"sail-1M": ("sail.py", ["--total-timesteps", "1000000", "--threads", "1", "--checkpoint-freq", "10000"])},
+                 {"sail-1M": ("sail.py", ["--total-timesteps", "1000000", "--threads", "1",
+                                          "--checkpoint-freq", "10000", *FIVE_ADDITIONS])},
                  [2, 3]),
-    # the pair --decomposition-action-cost --actor-action-cost on the defaults for 1M env steps: seeds 2 and 3 are
+    # sail.py's defaults (the five additions and the learned action cost) for 1M env steps: seeds 2 and 3 are
     # their 300k runs of `learning-actor-cost`, continued with --resume --total-timesteps 1000000 (the run folder
     # copied to this grid's runs folder first)
     "long-actor-cost": grid(["Walker2d-v5", "HalfCheetah-v5"],
                             {"sail-dan-cost-actor-1M": ("sail.py", [
                                 "--total-timesteps", "1000000", "--threads", "1", "--checkpoint-freq", "10000",
-                                *DEFAULT_FLAGS, "--decomposition-action-cost", "--actor-action-cost"])}, [2, 3]),
+                                *DAN_FLAGS, *ACTION_COST])}, [2, 3]),
     # the bonus base for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
     "long-bonus": grid(["Walker2d-v5", "HalfCheetah-v5"],
