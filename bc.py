@@ -5,17 +5,16 @@
 The TD3 actor of td3.py learns the teacher's action for each teacher state (mean squared error)
 for --bc-steps gradient steps, without any env interaction, and is evaluated on the dense
 episodic return every --eval-freq gradient steps. The run folder has the layout of sail.py's
-(config.json, progress.csv with the same columns, model.pt with --save-model), so plot.py and
-`sail.py --evaluate RUN_DIR` read it as any other run.
+(config.json, progress.csv with the same columns, model.pt), so plot.py and
+`evaluate.py RUN_DIR` read it as any other run.
 """
 
-import os
-import signal
 import sys
 
-if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, no traceback. os._exit,
-    # since an exception raised in Python code that torch's C++ import calls aborts the process
-    signal.signal(signal.SIGINT, lambda signum, frame: os._exit(print("bc.py: interrupted", file=sys.stderr, flush=True) or 130))
+import plumbing
+
+if __name__ == "__main__":
+    plumbing.quiet_interrupt_while_importing("bc.py")
 
 import argparse
 
@@ -24,12 +23,9 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-import plumbing
-from buffers import default_demo_path, load_teacher_buffer
+from demos import default_demo_path, load_teacher_buffer
 from envs import evaluate_policy, make_env
-from plumbing import ConfigError
-from evaluate import save_model
-from sail import CSV_COLUMNS
+from plumbing import PROGRESS_COLUMNS, ConfigError
 from td3 import TD3, make_adam
 
 
@@ -50,11 +46,10 @@ def parse_args(argv=None):
     p.add_argument("--threads", type=plumbing.threads, default=2, help="torch CPU threads")
     p.add_argument("--output-dir", default="runs", help="parent folder of the run folder")
     p.add_argument("--run-name", help="run folder name (default: <env>__bc__<seed>__<time>)")
-    p.add_argument("--save-model", action="store_true", help="save the actor to model.pt at the end")
     p.add_argument("--tensorboard", action="store_true", help="also log progress.csv's numbers to TensorBoard")
     args = p.parse_args(argv)
     plumbing.check_tensorboard(p, args)
-    args.algo, args.absorbing = "bc", False  # what plot.py and --evaluate read from config.json
+    args.algo, args.method, args.absorbing = "bc", "BC", False  # what plot.py and evaluate.py read from config.json
     return args
 
 
@@ -71,9 +66,9 @@ def train(args):
                                     vars(args))
     print(f"run folder: {run_dir}", flush=True)
 
-    log = plumbing.ProgressLog(run_dir, CSV_COLUMNS, [], args.tensorboard)
+    log = plumbing.ProgressLog(run_dir, PROGRESS_COLUMNS, [], args.tensorboard)
     for step in tqdm(range(1, args.bc_steps + 1), desc=f"bc {args.env}", unit="update", mininterval=1.0):
-        obs, actions, _, _ = teacher_buffer.sample(args.batch_size)
+        obs, actions, *_ = teacher_buffer.sample(args.batch_size)
         loss = F.mse_loss(agent.actor(obs), actions)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -82,11 +77,10 @@ def train(args):
             if not np.isfinite(loss.item()):
                 raise ConfigError(f"BC loss is {loss.item()} at step {step}")
             evaluation = evaluate_policy(eval_env, agent.act, args.eval_episodes)
-            log.append({k: float("nan") for k in CSV_COLUMNS} | evaluation | {
+            log.append({k: float("nan") for k in PROGRESS_COLUMNS} | evaluation | {
                 "global_step": 0, "updates": step, "teacher_threshold": teacher_buffer.threshold,
                 "teacher_episodes": teacher_buffer.num_episodes, "alpha": 1.0, "actor_loss": loss.item()})
-    if args.save_model:
-        save_model(run_dir, agent, None, args)
+    plumbing.save_model(run_dir, agent, None, args)
     return 0
 
 

@@ -34,11 +34,14 @@ import torch.nn.functional as F
 
 import cpu_kernels
 import plumbing
-import sail
 import td3
-from buffers import ReplayBuffer, TeacherBuffer
+from buffers import ReplayBuffer, TeacherBuffer, mixed_batch
+from discriminator import Discriminator, shaped_reward, train_discriminator
 from envs import make_env
 from plumbing import ArgumentParser, cpu_model, positive_int
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+DISC_FREQ, DISC_STEPS, DISC_LR = 500, 10, 1e-3  # sail.py's defaults
 
 
 def parse_args():
@@ -162,15 +165,20 @@ def update_flops(obs_dim, act_dim, hidden, batch_size, discriminator=True, polic
     return batch_size * (target + critic_step + reward + actor_step)
 
 
-def bench_args(args, env_id, output_dir, total, kernels="auto"):
-    # the paper's SAIL: the TD3 update and D alone, as the plain loop's like; sail.py's default additions
-    # (the return decomposition's reward model above all) cost more, README's Speed says how much
-    return sail.parse_args(["--algo", "sail-paper", "--env", env_id, "--threads", str(args.threads),
-                            "--hidden", str(args.hidden), str(args.hidden), "--disc-hidden", str(args.hidden), str(args.hidden),
-                            "--batch-size", str(args.batch_size), "--learning-starts", str(args.warmup),
-                            "--total-timesteps", str(total), "--eval-freq", str(args.warmup),
-                            "--eval-episodes", "1", "--output-dir", output_dir, "--checkpoint-freq", str(10**9),
-                            "--kernels", kernels])
+def sail_flags(args, env_id, output_dir, total, kernels="auto"):
+    """sail.py's command line for the paper's SAIL (the TD3 update and D alone, as the plain loop's
+    like) at the bench's sizes; sail.py's default additions cost more, README's Speed says how much."""
+    return ["--algo", "sail-paper", "--env", env_id, "--threads", str(args.threads),
+            "--hidden", str(args.hidden), str(args.hidden), "--disc-hidden", str(args.hidden), str(args.hidden),
+            "--batch-size", str(args.batch_size), "--learning-starts", str(args.warmup),
+            "--total-timesteps", str(total), "--eval-freq", str(args.warmup),
+            "--eval-episodes", "1", "--output-dir", output_dir, "--kernels", kernels]
+
+
+def paper_sail_update(agent, disc, teacher_buffer, self_buffer, batch_size):
+    """The paper's SAIL update as sail.py runs it: a batch of 0.5 R_E + 0.5 R_B, rewarded by -log(1 - D)."""
+    (obs, actions, next_obs, terminated), _, _ = mixed_batch(teacher_buffer, self_buffer, batch_size, 0.5)
+    agent.update(obs, actions, shaped_reward(disc, obs, actions, "sail"), next_obs, terminated)
 
 
 def updates_on_random_data(args, obs_dim, act_dim):
@@ -185,7 +193,6 @@ def updates_on_random_data(args, obs_dim, act_dim):
         plain.storage[k][:] = v.reshape(n, -1)
     plain.size = n
 
-    sargs = bench_args(args, args.env, tempfile.gettempdir(), args.warmup)
     self_buffer = ReplayBuffer(obs_dim, act_dim, n)
     for t, v in zip(self_buffer.tensors(), data):
         t.copy_(torch.from_numpy(v))
@@ -196,14 +203,15 @@ def updates_on_random_data(args, obs_dim, act_dim):
 
     def sail_update_fn(kernels):
         agent = td3.TD3(obs_dim, act_dim, -np.ones(act_dim), np.ones(act_dim), hidden=[args.hidden] * 2)
-        disc = sail.Discriminator(obs_dim, act_dim, [args.hidden] * 2)
-        disc_optimizer = td3.make_adam(disc.parameters(), sargs.disc_lr)
+        disc = Discriminator(obs_dim, act_dim, [args.hidden] * 2)
+        disc_optimizer = td3.make_adam(disc.parameters(), DISC_LR)
         cpu_kernels.apply(kernels, [*agent.networks(), disc])
 
         def update():
-            if agent.num_updates % sargs.disc_freq == 0:  # D is trained every --disc-freq env steps
-                sail.train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, sargs)
-            sail.td3_update(agent, disc, teacher_buffer, self_buffer, 0.5, sargs, (-3.0, 3.0))
+            if agent.num_updates % DISC_FREQ == 0:  # D is trained every --disc-freq env steps
+                train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, DISC_STEPS, args.batch_size,
+                                    0.01, 10.0)
+            paper_sail_update(agent, disc, teacher_buffer, self_buffer, args.batch_size)
         return agent, disc, update
 
     kinds = ["torch", "onednn"] if cpu_kernels.AVAILABLE else ["torch"]
@@ -245,13 +253,10 @@ def sail_env_steps(args):
     """Part 3, SAIL: sail.py itself. Its CSV's steps_per_second excludes evaluation; the first
     row (every --warmup steps) is the warm-up, the others are timed."""
     with tempfile.TemporaryDirectory() as tmp:
-        sargs = bench_args(args, args.env, tmp, args.warmup + args.env_steps)
-        with open(os.devnull, "w") as devnull:  # its run-folder lines
-            stdout, sys.stdout = sys.stdout, devnull
-            try:
-                sail.train(sargs)
-            finally:
-                sys.stdout = stdout
+        command = [sys.executable, os.path.join(HERE, "sail.py"), *sail_flags(args, args.env, tmp, args.warmup + args.env_steps)]
+        out = subprocess.run(command, cwd=HERE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        if out.returncode != 0:
+            sys.exit(f"bench.py: error: sail.py failed: {(out.stderr.strip().splitlines() or ['?'])[-1]}")
         run_dir = os.path.join(tmp, os.listdir(tmp)[0])
         with open(os.path.join(run_dir, "progress.csv")) as f:
             rows = list(csv.DictReader(f))
@@ -261,30 +266,34 @@ def sail_env_steps(args):
 
 
 MEMORY_SCRIPT = """
-import resource, sys, tempfile, torch, numpy as np
-import sail
-args = sail.parse_args(["--env", "Walker2d-v5", "--output-dir", tempfile.mkdtemp(), "--threads", "{threads}"])
+import resource, tempfile, torch, numpy as np
+import plumbing, td3
+from buffers import ReplayBuffer, TeacherBuffer, mixed_batch
+from discriminator import Discriminator, shaped_reward, train_discriminator
+from envs import EnvState, make_env
+torch.set_num_threads({threads})
 # a 1M-step run's state: its buffer full (every page written), networks, D, both envs
-env, eval_env = sail.make_env(args.env, 1), sail.make_env(args.env, 101)
+env, eval_env = make_env("Walker2d-v5", 1), make_env("Walker2d-v5", 101)
 obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
-buffer = sail.ReplayBuffer(obs_dim, act_dim, args.buffer_size)
+buffer = ReplayBuffer(obs_dim, act_dim, 10**6)
 for t in buffer.tensors():
     t.normal_()
-buffer.size = args.buffer_size
-buffer.episode_returns.copy_(torch.randn(args.buffer_size // 1000).repeat_interleave(1000))
-teacher = sail.TeacherBuffer(args.teacher_capacity)
+buffer.size = 10**6
+buffer.episode_returns.copy_(torch.randn(1000).repeat_interleave(1000))
+teacher = TeacherBuffer(10_000)
 teacher.add_episode(0.0, *(t[:10_000] for t in (buffer.obs, buffer.actions, buffer.next_obs, buffer.terminated)))
-agent = sail.TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high)
-disc = sail.Discriminator(obs_dim, act_dim, args.disc_hidden)
-disc_optimizer = sail.make_adam(disc.parameters(), args.disc_lr)
-sail.train_discriminator(disc, disc_optimizer, teacher, buffer, args)
+agent = td3.TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high)
+disc = Discriminator(obs_dim, act_dim, [256, 256])
+disc_optimizer = td3.make_adam(disc.parameters(), 1e-3)
+train_discriminator(disc, disc_optimizer, teacher, buffer, 10, 256, 0.01, 10.0)
 for _ in range(100):
-    sail.td3_update(agent, disc, teacher, buffer, 0.5, args, (-3.0, 3.0))
-run_dir = sail.plumbing.make_run_dir(args.output_dir, "memory", {{}})
+    (obs, actions, next_obs, terminated), _, _ = mixed_batch(teacher, buffer, 256, 0.5)
+    agent.update(obs, actions, shaped_reward(disc, obs, actions, "sail"), next_obs, terminated)
+run_dir = plumbing.make_run_dir(tempfile.mkdtemp(), "memory", {{}})
 state = {{"global_step": 10**6, "rows": [], "train_time": 0.0}}
-sail.plumbing.save_checkpoint(run_dir + "/checkpoint.pt", {{"agent": agent, "disc": disc,
-    "disc_optimizer": disc_optimizer, "self_buffer": buffer, "teacher_buffer": teacher, "env": sail.EnvState(env),
-    "eval_env": sail.EnvState(eval_env), "rng": sail.plumbing.RNGs(np.random.default_rng(0))}},
+plumbing.save_checkpoint(run_dir + "/checkpoint.pt", {{"agent": agent, "disc": disc,
+    "disc_optimizer": disc_optimizer, "self_buffer": buffer, "teacher_buffer": teacher, "env": EnvState(env),
+    "eval_env": EnvState(eval_env), "rng": plumbing.RNGs(np.random.default_rng(0))}},
     loop=state, obs=env.reset()[0])
 print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2)
 """
@@ -292,8 +301,7 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2)
 
 def peak_memory_gb(args):
     """Part 4 in a fresh process, so that parts 1-3 do not count."""
-    here = os.path.dirname(os.path.abspath(__file__))
-    out = subprocess.run([sys.executable, "-c", MEMORY_SCRIPT.format(threads=args.threads)], cwd=here,
+    out = subprocess.run([sys.executable, "-c", MEMORY_SCRIPT.format(threads=args.threads)], cwd=HERE,
                          capture_output=True, text=True)
     if out.returncode != 0:
         sys.exit(f"bench.py: error: the memory measurement failed: {out.stderr.strip().splitlines()[-1]}")

@@ -118,7 +118,7 @@ class AbsorbingState(gym.Wrapper):
         return np.append(obs, 0.0).astype(np.float32), reward, False, truncated, info
 
 
-def make_env(env_id, seed, sparse=True, time_feature=True, absorbing=False, render_mode=None, contact_forces=True):
+def make_env(env_id, seed, sparse=True, time_feature=True, absorbing=False, render_mode=None):
     """Builds `env_id` seeded with `seed` (env, action space, observation space).
 
     sparse:         reward 0 except the episodic return on the last step (False: dense reward,
@@ -126,11 +126,7 @@ def make_env(env_id, seed, sparse=True, time_feature=True, absorbing=False, rend
     time_feature:   append 1 - t/T to the observation.
     absorbing:      DAC's absorbing-state indicator and self-loop.
     render_mode:    gymnasium's, e.g. "rgb_array" for videos.
-    contact_forces: False drops the contact forces (cfrc_ext, the last entries) from the
-                    observation of an env that has them (Ant-v5, Humanoid-v5); the reward is
-                    unchanged. env.dropped_obs_dims says how many entries went.
-    Raises ConfigError for an unknown id, a non-Box action space, or contact_forces=False on an
-    env without them.
+    Raises ConfigError for an unknown id, a non-Box action space or a non-flat observation space.
     """
     # render_mode only when asked: an env of the user's own need not accept the keyword
     options = {"render_mode": render_mode} if render_mode else {}
@@ -138,15 +134,6 @@ def make_env(env_id, seed, sparse=True, time_feature=True, absorbing=False, rend
         env = gym.make(env_id, **options)
     except (gym.error.Error, ImportError, AttributeError, ValueError) as e:  # also "nosuchmodule:Foo-v0"
         raise ConfigError(f"unknown environment {env_id!r}: {first_line(e)}") from None
-    dropped_obs_dims = 0
-    if not contact_forces:
-        # MuJoCo v5 envs name their observation's parts; cfrc_ext is the last one where present
-        dropped_obs_dims = int((getattr(env.unwrapped, "observation_structure", None) or {}).get("cfrc_ext", 0))
-        if dropped_obs_dims == 0:
-            raise ConfigError(f"{env_id} has no contact forces in its observation to drop "
-                              "(--no-contact-forces is for Ant-v5 and Humanoid-v5)")
-        env.close()
-        env = gym.make(env_id, include_cfrc_ext_in_observation=False, **options)
     if not isinstance(env.action_space, gym.spaces.Box):
         raise ConfigError(f"{env_id} has a {type(env.action_space).__name__} action space; "
                           "TD3 needs a continuous Box action space")
@@ -161,7 +148,6 @@ def make_env(env_id, seed, sparse=True, time_feature=True, absorbing=False, rend
     if absorbing:
         env = AbsorbingState(env)
     env.max_episode_steps = max_steps
-    env.dropped_obs_dims = dropped_obs_dims
     env.reset(seed=seed)
     env.action_space.seed(seed)
     env.observation_space.seed(seed)

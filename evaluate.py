@@ -1,61 +1,63 @@
-"""Saved actors: model.pt, and playing a run's actor back (`sail.py --evaluate RUN_DIR`).
+"""Plays a run's saved actor back: its scores on the dense return, and optionally a video.
 
-sail.py and bc.py write model.pt with --save-model; every sail.py run also keeps its actor in
-checkpoint.pt. `evaluate_run` rebuilds the env and the actor from the run's config.json and
-plays episodes with the deterministic policy, printing the dense return of each.
+    python evaluate.py runs/Hopper-v5__sail__1__20261121-120000 --episodes 10
+    python evaluate.py RUN_DIR --video hopper.gif          # render the episodes headless
+
+Every run of sail.py, bc.py (and make_demos.py --save-teacher) writes model.pt at its end and
+sail.py keeps its actor in checkpoint.pt, so a run still in progress can be watched too. The env
+and the actor are rebuilt from the run's config.json; the episodes are played with the
+deterministic policy on an env seeded with --seed (with --noise STD, the actor plus Gaussian
+noise as in training: how its training episodes score against the promotion bar).
 """
 
 import os
+import sys
+
+import plumbing
+
+if __name__ == "__main__":
+    plumbing.quiet_interrupt_while_importing("evaluate.py")
 
 import numpy as np
 import torch
 
-import plumbing
 from envs import make_env, rollout
-from plumbing import ConfigError
+from plumbing import ConfigError, non_negative_float, positive_int
 from td3 import TD3
 
 
-def save_model(run_dir, agent, disc, args):
-    """model.pt: the deployed actor (--deploy), critics and discriminator (None for BC), with what
-    rebuilds the actor."""
-    model = {"actor": agent.actor_target if deploys_target(args) else agent.actor, "critic": agent.critic}
-    if disc is not None:
-        model["discriminator"] = disc
-    plumbing.save_checkpoint(os.path.join(run_dir, "model.pt"), model, env=args.env, hidden=args.hidden,
-                             time_feature=args.time_feature, absorbing=args.absorbing,
-                             contact_forces=getattr(args, "contact_forces", True))
+def parse_args(argv=None):
+    p = plumbing.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a run folder (config.json with model.pt or checkpoint.pt)")
+    p.add_argument("--episodes", type=positive_int, default=5, help="episodes to play")
+    p.add_argument("--seed", type=plumbing.seed, default=1, help="seed of the env (and of --noise)")
+    p.add_argument("--threads", type=plumbing.threads, default=2, help="torch CPU threads")
+    p.add_argument("--video", metavar="FILE", help="render the episodes headless into FILE (.gif, or .mp4 with "
+                   "imageio-ffmpeg)")
+    p.add_argument("--noise", type=non_negative_float, default=0.0, help="std of Gaussian action noise, as "
+                   "--exploration-noise in training (0: deterministic)")
+    return p.parse_args(argv)
 
 
-def deploys_target(args):
-    """Whether a run deploys the target actor (runs made before --deploy existed deployed the actor)."""
-    return getattr(args, "deploy", "actor") == "target"
-
-
-def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0, deploy=None):
+def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0):
     """Plays `episodes` episodes of RUN_DIR's saved actor (model.pt, else checkpoint.pt) on an env
-    seeded with `seed`; prints the return and length of each, then their mean. `deploy` (actor or
-    target) picks the other of the two than the run deployed; only checkpoint.pt holds both. With `video`
-    (a .gif or .mp4 path) the episodes are rendered headless into it, one after another. With
-    `noise`, the actor acts as in training (Gaussian noise of that std, seeded with `seed`): what
-    the promotion bar sees of it."""
+    seeded with `seed`; prints the return and length of each, then their mean. With `video` (a .gif
+    or .mp4 path) the episodes are rendered headless into it, one after another."""
     if video is not None:
         check_video_path(video)
         os.environ.setdefault("MUJOCO_GL", "egl")  # headless; MUJOCO_GL=osmesa where EGL is missing
     if not os.path.isfile(os.path.join(run_dir, "config.json")):
-        raise ConfigError(f"--evaluate {run_dir}: no config.json there (not a run folder)")
+        raise ConfigError(f"{run_dir}: no config.json there (not a run folder)")
     config = plumbing.read_config(run_dir)
-    target = deploys_target(config) if deploy is None else deploy == "target"
-    names = ("model.pt", "checkpoint.pt") if target == deploys_target(config) else ("checkpoint.pt",)
-    path = next((p for p in (os.path.join(run_dir, n) for n in names) if os.path.isfile(p)), None)
+    path = next((p for p in (os.path.join(run_dir, n) for n in ("model.pt", "checkpoint.pt")) if os.path.isfile(p)),
+                None)
     if path is None:
-        why = "" if len(names) == 2 else f" (model.pt holds the actor the run deployed, not --deploy {deploy})"
-        raise ConfigError(f"--evaluate {run_dir}: no {' or '.join(names)} there{why}")
+        raise ConfigError(f"{run_dir}: no model.pt or checkpoint.pt there")
     saved = plumbing.load_checkpoint(path)  # on the CPU, also a run made with --device cuda
     torch.set_num_threads(threads)
     try:
         env = make_env(config.env, seed, time_feature=config.time_feature, absorbing=config.absorbing,
-                       render_mode="rgb_array" if video else None, contact_forces=getattr(config, "contact_forces", True))
+                       render_mode="rgb_array" if video else None)
     except AttributeError as e:
         raise ConfigError(f"{run_dir}/config.json lacks {e.name}: not a run folder of sail.py or bc.py") from None
     if video is not None:
@@ -63,8 +65,7 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0, deploy
     agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low,
                 env.action_space.high, hidden=config.hidden)
     try:
-        agent.actor.load_state_dict(saved["actor"] if "actor" in saved else
-                                    saved["agent"]["actor_target" if target else "actor"])
+        agent.actor.load_state_dict(saved["actor"] if "actor" in saved else saved["agent"]["actor"])
     except (RuntimeError, KeyError, TypeError) as e:  # config.json and the saved networks disagree (sizes, env)
         raise ConfigError(f"{path} does not fit {run_dir}/config.json: {plumbing.first_line(e)}") from None
     returns, frames, fps = [], [], env.metadata.get("render_fps", 30)
@@ -140,3 +141,9 @@ def write_video(path, frames, fps):
                                                            loop=0))
     else:
         plumbing.atomic_write(path, lambda f: iio.imwrite(f, np.stack(frames), extension=".mp4", fps=fps))
+
+
+if __name__ == "__main__":
+    args = parse_args()
+    sys.exit(plumbing.run_main("evaluate.py", lambda a: evaluate_run(a.run_dir, a.episodes, a.seed, a.threads,
+                                                                    a.video, a.noise), args))

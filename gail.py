@@ -5,7 +5,7 @@
 
 Each iteration collects --steps-per-batch env steps with the current Gaussian policy, trains
 the discriminator D on-policy (teacher R_E labelled 1, this batch labelled 0; the discriminator,
-its loss and its reward are sail.py's), rewards every step with r'(s, a) = -log(1 - D(s, a)),
+its loss and its reward are discriminator.py's, as sail.py's), rewards every step with r'(s, a) = -log(1 - D(s, a)),
 or for POfD with 0.1 r_e - log(1 - D(s, a)) where r_e is the sparse episodic reward, and takes
 one TRPO step (Schulman et al. 2015): the policy gradient of the GAE advantages, turned into a
 natural gradient by conjugate gradient on the KL's Hessian, scaled to the KL bound --max-kl and
@@ -15,12 +15,12 @@ running statistics. The run folder, CSV columns, --resume and stopping are sail.
 """
 
 import os
-import signal
 import sys
 
-if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, no traceback. os._exit,
-    # since an exception raised in Python code that torch's C++ import calls aborts the process
-    signal.signal(signal.SIGINT, lambda signum, frame: os._exit(print("gail.py: interrupted", file=sys.stderr, flush=True) or 130))
+import plumbing
+
+if __name__ == "__main__":
+    plumbing.quiet_interrupt_while_importing("gail.py")
 
 import dataclasses
 import math
@@ -32,11 +32,10 @@ import torch.nn as nn
 import torch.nn.functional as F
 from tqdm import tqdm
 
-import plumbing
-from buffers import default_demo_path, load_teacher_buffer
+from demos import default_demo_path, load_teacher_buffer
+from discriminator import Discriminator, RunningNorm, discriminator_loss, shaped_reward
 from envs import EnvState, evaluate_policy, make_env
-from plumbing import non_negative_float, positive_int
-from sail import CSV_COLUMNS, Discriminator, RunningNorm, discriminator_loss, shaped_reward
+from plumbing import PROGRESS_COLUMNS, non_negative_float, positive_int
 from td3 import make_adam, mlp
 
 RESUMABLE = ("total_timesteps", "threads")
@@ -98,6 +97,7 @@ def parse_args(argv=None):
         p.error("--steps-per-batch must be at least --disc-batch-size")
     plumbing.check_tensorboard(p, args)
     args.algo = "pofd" if args.pofd else "gail"
+    args.method = "POfD" if args.pofd else "GAIL"  # what plot.py reads from config.json
     args.time_feature, args.absorbing = True, False  # the sparse setting's observations, as sail.py's
     return args
 
@@ -241,7 +241,7 @@ def train(args):
               f"{np.mean(teacher_buffer.returns):.1f}", flush=True)
         bar = tqdm(total=args.total_timesteps, initial=s.global_step, desc=f"{args.algo} {args.env}", unit="step",
                    dynamic_ncols=True, mininterval=1.0)
-        log = plumbing.ProgressLog(run_dir, CSV_COLUMNS, s.rows, args.tensorboard)
+        log = plumbing.ProgressLog(run_dir, PROGRESS_COLUMNS, s.rows, args.tensorboard)
         clock, last_row = time.perf_counter(), (s.global_step, s.train_time)
         while s.global_step < args.total_timesteps and not stop.requested:
             # 1. a batch of env steps with the current policy; the env and RNG state at its start are
@@ -276,7 +276,7 @@ def train(args):
                 for idx in torch.randperm(n).split(args.disc_batch_size):
                     if len(idx) < args.disc_batch_size:
                         continue
-                    t_obs, t_act, _, _ = teacher_buffer.sample(len(idx))
+                    t_obs, t_act, *_ = teacher_buffer.sample(len(idx))
                     disc.update_norms(torch.cat([t_obs, batch["obs"][idx]]),
                                       torch.cat([t_act, batch["env_actions"][idx]]))
                     loss, d_teacher, d_self = discriminator_loss(disc, t_obs, t_act, batch["obs"][idx],
@@ -324,7 +324,7 @@ def train(args):
                        "train_episodic_return": s.train_episodic_return, "teacher_episodes": teacher_buffer.num_episodes,
                        "teacher_threshold": teacher_buffer.threshold, "updates": s.iterations, "time": s.train_time,
                        "steps_per_second": (s.global_step - last_row[0]) / max(s.train_time - last_row[1], 1e-9)}
-                log.append({k: float("nan") for k in CSV_COLUMNS} | {k: v for k, v in stats.items() if k in CSV_COLUMNS}
+                log.append({k: float("nan") for k in PROGRESS_COLUMNS} | {k: v for k, v in stats.items() if k in PROGRESS_COLUMNS}
                            | row)
                 bar.set_postfix(eval=f"{row['eval_return']:.0f}", refresh=False)
                 clock, last_row = time.perf_counter(), (s.global_step, s.train_time)

@@ -15,21 +15,20 @@ a checkpoint (with --checkpoint), which a later run with the same --checkpoint c
 """
 
 import os
-import signal
 import sys
 
-if __name__ == "__main__":  # Ctrl-C while torch loads: one line and exit 130, no traceback. os._exit,
-    # since an exception raised in Python code that torch's C++ import calls aborts the process
-    signal.signal(signal.SIGINT, lambda signum, frame: os._exit(print("make_demos.py: interrupted", file=sys.stderr, flush=True) or 130))
+import plumbing
+
+if __name__ == "__main__":
+    plumbing.quiet_interrupt_while_importing("make_demos.py")
 
 import time
 
 import numpy as np
 import torch
 
-import plumbing
-from buffers import ReplayBuffer, check_minari_id, default_demo_path, save_demos, save_minari
-from evaluate import save_model
+from buffers import ReplayBuffer
+from demos import check_minari_id, default_demo_path, save_demos, save_minari
 from envs import EnvState, make_env, rollout
 from plumbing import ConfigError
 from td3 import TD3
@@ -56,7 +55,7 @@ def parse_args(argv=None):
     p.add_argument("--output", help="demo file (default: demos/<env>.npz beside this script)")
     p.add_argument("--force", action="store_true", help="replace an existing demo file")
     p.add_argument("--save-teacher", metavar="DIR", help="also keep the teacher as a run folder (config.json, "
-                   "model.pt) that `sail.py --evaluate DIR` plays back")
+                   "model.pt) that `evaluate.py DIR` plays back")
     p.add_argument("--minari", metavar="DATASET_ID", help="also write the episodes as this Minari dataset in the "
                    "local Minari store (e.g. sail/hopper/teacher-v0; needs the extras)")
     p.add_argument("--total-timesteps", type=plumbing.positive_int, default=1_000_000,
@@ -118,7 +117,7 @@ def write_outputs(args, agent, episodes, global_step):
         args.algo, args.time_feature, args.absorbing = "teacher", False, False
         teacher_dir = plumbing.make_run_dir(os.path.dirname(os.path.abspath(args.save_teacher)),
                                             os.path.basename(os.path.abspath(args.save_teacher)), vars(args))
-        save_model(teacher_dir, agent, None, args)
+        plumbing.save_model(teacher_dir, agent, None, args)
         print(f"wrote the teacher to {teacher_dir}")
     rets = [ep["episodic_return"] for ep in episodes]
     lens = [len(ep["actions"]) for ep in episodes]

@@ -1,8 +1,8 @@
 """What every training script here needs around its loop, in one place.
 
-sail.py, bc.py and make_demos.py use it for: one-line errors on bad input, a run folder with
-its config.json, the progress CSV, atomic writes, checkpoints (a dict of state_dicts, loaded
-with torch's weights-only unpickler), --resume, and a clean stop on Ctrl-C or SIGTERM.
+sail.py, bc.py, gail.py and make_demos.py use it for: one-line errors on bad input, a run folder
+with its config.json, the progress CSV, atomic writes, checkpoints (a dict of state_dicts, loaded
+with torch's weights-only unpickler), model.pt, --resume, and a clean stop on Ctrl-C or SIGTERM.
 None of it is reinforcement learning; it is here so that the scripts can be about that.
 """
 
@@ -14,10 +14,17 @@ import os
 import platform
 import shlex
 import signal
+import subprocess
 import sys
 import time
 
 import numpy as np
+
+# progress.csv's columns, one row per evaluation, the same for every script so that plot.py reads them all
+PROGRESS_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "train_episodic_return",
+                    "teacher_threshold", "teacher_episodes", "promotions", "alpha", "disc_loss", "disc_teacher",
+                    "disc_self", "reward_mean", "decomposition_loss", "decomposition_action_cost", "critic_loss",
+                    "actor_loss", "q", "updates", "steps_per_second", "time"]
 
 # torch is imported inside the checkpoint functions that use it, so that a script which only needs
 # the flags and files here (results/grid.py) starts without loading it (~2 s)
@@ -49,6 +56,19 @@ class ArgumentParser(argparse.ArgumentParser):
         namespace = argparse.Namespace(**{name: unset for name in vars(self.parse_args([]))})
         self.parse_known_args(argv, namespace=namespace)
         return {name for name, value in vars(namespace).items() if value is not unset}
+
+
+def as_flag(name, value):
+    """A flag and its value as written on a command line: "--gamma 0.995", "--no-time-feature"."""
+    flag = "--" + name.replace("_", "-")
+    if isinstance(value, bool):
+        return flag if value else "--no-" + flag[2:]
+    return f"{flag} {' '.join(map(str, value)) if isinstance(value, (list, tuple)) else value}"
+
+
+def count(n, noun):
+    """ "1 episode", "4 episodes"."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def positive_int(text):
@@ -84,6 +104,13 @@ def threads(text):
     if value > most:
         raise argparse.ArgumentTypeError(f"must be at most {most} (4x the {os.cpu_count()} CPUs here), got {value}")
     return value
+
+
+def quiet_interrupt_while_importing(prog):
+    """Ctrl-C while a script imports torch: one line and exit 130, no traceback. os._exit, since an
+    exception raised in Python code that torch's C++ import calls aborts the process."""
+    signal.signal(signal.SIGINT, lambda signum, frame: os._exit(print(f"{prog}: interrupted", file=sys.stderr,
+                                                                      flush=True) or 130))
 
 
 def run_main(prog, main, argv=None):
@@ -155,14 +182,30 @@ def cpu_model():
         return platform.processor() or platform.machine()
 
 
+def git_commit():
+    """The commit of the code that runs (`-dirty` if it has uncommitted changes), None outside a git checkout."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    try:
+        out = subprocess.run(["git", "describe", "--always", "--dirty", "--abbrev=12"], cwd=here,
+                             capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    commit = out.stdout.strip()
+    return commit if out.returncode == 0 and commit else None
+
+
 def make_run_dir(output_dir, name, config):
-    """Creates output_dir/name with config.json (every flag, the exact command and the CPU, which
-    the run's steps_per_second means little without)."""
+    """Creates output_dir/name with config.json: what the run is (its method, every flag), the code
+    that ran it (commit), the command and the CPU, which the run's steps_per_second means little
+    without. Nothing of where it ran: no folder of this machine is written."""
     run_dir = os.path.join(output_dir, name)
     if os.path.exists(run_dir):
         raise ConfigError(f"run folder {run_dir} already exists (use --resume {run_dir} to continue it)")
     check_writable(os.path.join(run_dir, "config.json"))
-    config = dict(config, command=shlex.join([sys.executable, *sys.argv]), cpu=cpu_model())
+    config = {k: v for k, v in config.items() if k not in ("output_dir", "resume", "given")}
+    command = shlex.join(["python", os.path.basename(sys.argv[0]), *sys.argv[1:]])
+    commit = git_commit()
+    config |= {"command": command, "cpu": cpu_model()} | ({"commit": commit} if commit else {})
     atomic_write(os.path.join(run_dir, "config.json"), lambda f: f.write(json.dumps(config, indent=2).encode()))
     return run_dir
 
@@ -269,6 +312,23 @@ def load_checkpoint(path, parts=()):
     return state
 
 
+def save_model(run_dir, agent, disc, args):
+    """model.pt: the actor, the critics and the discriminator (None for BC and the teacher), with what
+    rebuilds the actor (env, hidden sizes, observation features); evaluate.py plays it back."""
+    model = {"actor": agent.actor, "critic": agent.critic} | ({"discriminator": disc} if disc is not None else {})
+    save_checkpoint(os.path.join(run_dir, "model.pt"), model, env=args.env, hidden=args.hidden,
+                    time_feature=args.time_feature, absorbing=args.absorbing)
+
+
+def check_finite(losses, where, run_dir):
+    """ConfigError if a loss is NaN or infinite: the run stops before a diverged policy acts again."""
+    bad = {k: float(v) for k, v in losses.items() if not np.isfinite(float(v))}
+    if bad:
+        kept = (f"the last good checkpoint in {run_dir} is kept" if os.path.isfile(os.path.join(run_dir, "checkpoint.pt"))
+                else "it had written no checkpoint yet")
+        raise ConfigError(f"non-finite loss {bad} {where}; stopped, {kept}")
+
+
 class RNGs:
     """Every RNG a run draws from, as a checkpoint part: numpy's Generator, torch's CPU (and
     CUDA) generators."""
@@ -303,10 +363,9 @@ def read_config(run_dir):
         raise ConfigError(f"cannot read {path}: {first_line(e)}") from None
 
 
-def resume_config(run_dir, args, given, changeable, predating=None):
+def resume_config(run_dir, args, given, changeable):
     """The saved run's flags, with the `changeable` ones taken anew where given on the command
-    line. Any other flag given is a ConfigError: a resumed run cannot honour it. A flag the
-    saved config lacks (the run predates it) takes its value from `predating`, else the default."""
+    line. Any other flag given is a ConfigError: a resumed run cannot honour it."""
     path = os.path.join(run_dir, "config.json")
     if not os.path.isfile(path):
         raise ConfigError(f"--resume {run_dir}: no config.json there (not a run folder)")
@@ -319,8 +378,7 @@ def resume_config(run_dir, args, given, changeable, predating=None):
         allowed = ", ".join("--" + name.replace("_", "-") for name in changeable)
         raise ConfigError(f"--resume keeps the run's saved flags; {flags} cannot change (only {allowed} can)")
     config = vars(read_config(run_dir))
-    saved = {k: v for k, v in config.items() if k in vars(args)}  # the command line, the given set: not flags
-    saved = (predating or {}) | saved
+    saved = {k: v for k, v in config.items() if k in vars(args)}  # the command line, the commit: not flags
     anew = {name: getattr(args, name) for name in changeable if name in given}
     return argparse.Namespace(**(vars(args) | saved | anew | {"resume": run_dir}))
 

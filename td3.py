@@ -4,6 +4,8 @@ The update takes the reward of a batch from its caller: the dense env reward whe
 is trained (make_demos.py), the discriminator reward r'(s, a) in SAIL (sail.py). Everything
 else is the TD3 paper's algorithm: twin critics with the minimum of both as target (clipped
 double Q), target policy smoothing, delayed actor updates and Polyak-averaged target networks.
+Two options beside it: LayerNorm in the critics (as RLPD), and a caller's term in the actor's
+loss (`actor_penalty`, a known cost of the action charged beside Q).
 
 Plain PyTorch: nn.Sequential networks, Adam. Three cheap habits keep it fast on a CPU: the actor
 step reads the critic with its parameters frozen (no critic gradient is computed), the target
@@ -44,10 +46,6 @@ class Actor(nn.Module):
     def forward(self, obs):
         return torch.tanh(self.net(obs)) * self.action_scale + self.action_bias
 
-    def in_half_ranges(self, actions):
-        """Actions as distances from the middle of the range in units of half the range ([-1, 1])."""
-        return (actions - self.action_bias) / self.action_scale
-
 
 class Critic(nn.Module):
     """Q(s, a): MLP with ReLU on the concatenated observation and action (optionally LayerNorm
@@ -78,29 +76,6 @@ def make_adam(params, lr):
         return torch.optim.Adam(params, lr=lr, fused=True)
     except (RuntimeError, TypeError):  # a device or build without the fused kernel
         return torch.optim.Adam(params, lr=lr, foreach=True)
-
-
-def colored_noise(beta, steps, dims, rng):
-    """(steps, dims) Gaussian noise, unit variance at every step, whose power spectrum along time
-    falls as 1/f^beta: 0 is white noise, 1 pink, 2 red (close to a random walk). Drawn in the
-    frequency domain with random phases and amplitudes (Timmer and Koenig 1995), the lowest
-    frequency 1/steps standing in for the constant term. Pink exploration noise beat white and
-    Ornstein-Uhlenbeck noise for TD3 and SAC across tasks in Eberhard et al. 2023 ("Pink noise is
-    all you need")."""
-    freqs = np.fft.rfftfreq(steps)
-    freqs[0] = 1.0 / steps
-    scale = freqs ** (-beta / 2.0)
-    coeffs = scale[:, None] * (rng.normal(size=(len(freqs), dims)) + 1j * rng.normal(size=(len(freqs), dims)))
-    coeffs[0].imag = 0.0  # the constant term is real, as is the Nyquist term where steps is even
-    single = np.zeros(len(freqs), bool)
-    single[0] = True
-    if steps % 2 == 0:
-        coeffs[-1].imag = 0.0
-        single[-1] = True
-    noise = np.fft.irfft(coeffs, n=steps, axis=0)
-    # each step's variance: the real terms count once, the others (cos and sin parts) 2^2 times
-    std = np.sqrt(np.sum(np.where(single, 1.0, 4.0) * scale**2)) / steps
-    return (noise / std).astype(np.float32)
 
 
 class TD3:
@@ -137,32 +112,23 @@ class TD3:
         actor = self.actor_target if target else self.actor
         return actor(obs.unsqueeze(0))[0].cpu().numpy()
 
-    def explore(self, obs, exploration_noise, rng, unit_noise=None):
-        """The actor's action plus Gaussian noise (std: exploration_noise x half the action range):
-        white, drawn from rng, or the given unit-variance sample (one step of colored_noise)."""
+    def explore(self, obs, exploration_noise, rng):
+        """The actor's action plus Gaussian noise drawn from rng (std: exploration_noise x half the
+        action range), clipped to the action bounds."""
         low, high = self.action_bounds
-        if unit_noise is None:
-            noise = rng.normal(0.0, exploration_noise * (high - low) / 2)
-        else:
-            noise = unit_noise * exploration_noise * (high - low) / 2
+        noise = rng.normal(0.0, exploration_noise * (high - low) / 2)
         return np.clip(self.act(obs) + noise, low, high).astype(np.float32)
 
-    def update(self, obs, actions, rewards, next_obs, terminated, next_action_mask=None, discount=None, bc=None,
-               action_l2=0.0, action_budget=0.0, action_cost=0.0):
+    def update(self, obs, actions, rewards, next_obs, terminated, next_action_mask=None, actor_penalty=None):
         """One TD3 step on a batch; `rewards` come from the caller. Returns detached losses.
 
         `terminated` is 1 only for true terminal states: a time-limit truncation is not one,
         so the target bootstraps through it. `next_action_mask` (0 or 1 per row, optional)
         multiplies the target's next action: 0 where only the zero action exists in s'.
-        `discount` (per row, optional; default gamma) is gamma^m where `rewards` sum m steps
-        and `next_obs` is the state m steps on (n-step returns). `bc` (optional: states, actions,
-        weight) adds behaviour cloning of those actions to the actor's loss, `action_l2` a quadratic
-        penalty on the actor's own actions: on the part of the batch's mean squared action (per
-        dimension, in units of half the range) above `action_budget`, all of it at 0. `action_cost`
-        (a weight, in the reward's unit) charges the actor that times its squared action norm beside Q:
-        a known immediate cost of the action whose exact slope the actor gets, not Q's estimate of it.
+        `actor_penalty` (optional) maps the actor's actions to a per-row cost in the reward's unit
+        that the actor's loss charges beside Q: the exact slope of a known immediate cost, which
+        Q, nearly flat in the action, would pass on only in part.
         """
-        discount = self.gamma if discount is None else discount
         with torch.no_grad():
             noise = (torch.randn_like(actions) * self.policy_noise).clamp(-self.noise_clip, self.noise_clip)
             next_actions = (self.actor_target(next_obs) + noise).clamp(self.action_low, self.action_high)
@@ -170,7 +136,7 @@ class TD3:
                 next_actions = next_actions * next_action_mask
             # clipped double Q: y = r + gamma * (1 - done) * min_i Q'_i(s', a')
             next_q = torch.min(*self.critic_target(next_obs, next_actions))
-            td_target = rewards + discount * (1.0 - terminated) * next_q
+            td_target = rewards + self.gamma * (1.0 - terminated) * next_q
         q1, q2 = self.critic(obs, actions)
         critic_loss = F.mse_loss(q1, td_target) + F.mse_loss(q2, td_target)
         self.critic_optimizer.zero_grad(set_to_none=True)
@@ -183,20 +149,9 @@ class TD3:
             self.critic.requires_grad_(False)  # the actor's gradient passes through a fixed Q1
             policy_actions = self.actor(obs)
             q = self.critic.q1(obs, policy_actions)
-            if action_cost > 0:
-                q = q - action_cost * policy_actions.pow(2).sum(-1)
+            if actor_penalty is not None:
+                q = q - actor_penalty(policy_actions)
             actor_loss = -q.mean()
-            # Regularisers are weighed against Q over its mean magnitude, as TD3+BC does (Fujimoto & Gu 2021),
-            # so that a weight means the same whatever the reward's scale
-            regulariser = 0.0
-            if bc is not None:  # TD3+BC: weight x the squared distance to the given actions (alpha 2.5 is 0.4)
-                bc_obs, bc_actions, weight = bc
-                regulariser = weight * (((self.actor(bc_obs) - bc_actions) / self.actor.action_scale) ** 2).mean()
-            if action_l2 > 0:  # as action_l2 in OpenAI Baselines' HER: a prior for small actions (control cost)
-                squared = self.actor.in_half_ranges(policy_actions).pow(2).mean()
-                regulariser = regulariser + action_l2 * F.relu(squared - action_budget)
-            if bc is not None or action_l2 > 0:
-                actor_loss = actor_loss / q.abs().mean().detach() + regulariser
             self.actor_optimizer.zero_grad(set_to_none=True)
             actor_loss.backward()
             self.critic.requires_grad_(True)
