@@ -63,7 +63,7 @@ def train(args):
     agent = TD3(obs_dim, act_dim, eval_env.action_space.low, eval_env.action_space.high, hidden=args.hidden)
     optimizer = make_adam(agent.actor.parameters(), args.lr)
     run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(args.env, "bc", args.seed),
-                                    vars(args))
+                                    vars(args) | {"script": "bc.py"})
     print(f"run folder: {run_dir}", flush=True)
 
     log = plumbing.ProgressLog(run_dir, PROGRESS_COLUMNS, [], args.tensorboard)

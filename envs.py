@@ -136,7 +136,7 @@ def make_env(env_id, seed, sparse=True, time_feature=True, absorbing=False, rend
         raise ConfigError(f"unknown environment {env_id!r}: {first_line(e)}") from None
     if not isinstance(env.action_space, gym.spaces.Box):
         raise ConfigError(f"{env_id} has a {type(env.action_space).__name__} action space; "
-                          "TD3 needs a continuous Box action space")
+                          "these learners need a continuous Box action space")
     if not isinstance(env.observation_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
         raise ConfigError(f"{env_id} needs a flat Box observation space")
     max_steps = env.spec.max_episode_steps or 1000

@@ -204,7 +204,7 @@ class LoopState:
 
 def train(args):
     if args.resume:
-        args = plumbing.resume_config(args.resume, args, args.given, RESUMABLE)
+        args = plumbing.resume_config(args.resume, args, args.given, RESUMABLE, "gail.py")
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -234,10 +234,10 @@ def train(args):
             plumbing.record_resume(run_dir, args, s.global_step, RESUMABLE)
         else:
             s, (obs, _) = LoopState(), env.reset()
-            config = {k: v for k, v in vars(args).items() if k != "given"}
+            config = {k: v for k, v in vars(args).items() if k != "given"} | {"script": "gail.py"}
             run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(
                 args.env, args.algo, args.seed), config)
-        print(f"run folder: {run_dir}\nteacher: {teacher_buffer.num_episodes} episodes, return "
+        print(f"run folder: {run_dir}\nteacher: {plumbing.count(teacher_buffer.num_episodes, 'episode')}, return "
               f"{np.mean(teacher_buffer.returns):.1f}", flush=True)
         bar = tqdm(total=args.total_timesteps, initial=s.global_step, desc=f"{args.algo} {args.env}", unit="step",
                    dynamic_ncols=True, mininterval=1.0)

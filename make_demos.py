@@ -116,7 +116,8 @@ def write_outputs(args, agent, episodes, global_step):
     if args.save_teacher:
         args.algo, args.time_feature, args.absorbing = "teacher", False, False
         teacher_dir = plumbing.make_run_dir(os.path.dirname(os.path.abspath(args.save_teacher)),
-                                            os.path.basename(os.path.abspath(args.save_teacher)), vars(args))
+                                            os.path.basename(os.path.abspath(args.save_teacher)),
+                                            vars(args) | {"script": "make_demos.py"})
         plumbing.save_model(teacher_dir, agent, None, args)
         print(f"wrote the teacher to {teacher_dir}")
     rets = [ep["episodic_return"] for ep in episodes]

@@ -8,6 +8,7 @@ None of it is reinforcement learning; it is here so that the scripts can be abou
 
 import argparse
 import csv
+import fcntl
 import io
 import json
 import os
@@ -40,7 +41,11 @@ def first_line(error):
 
 
 class ArgumentParser(argparse.ArgumentParser):
-    """argparse that reports a bad flag as one line (no usage block) and exits with code 2."""
+    """argparse that shows each flag's default in --help and reports a bad flag as one line (no usage
+    block) with exit code 2."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, formatter_class=argparse.ArgumentDefaultsHelpFormatter, **kwargs)
 
     def error(self, message):
         print(f"{self.prog}: error: {message}", file=sys.stderr)
@@ -93,6 +98,22 @@ def non_negative_float(text):
     value = float(text)
     if not 0 <= value < float("inf"):
         raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
+def positive_float(text):
+    """argparse type: a finite number > 0 (a learning rate of 0 trains nothing)."""
+    value = non_negative_float(text)
+    if value == 0:
+        raise argparse.ArgumentTypeError("must be > 0, got 0")
+    return value
+
+
+def unit_interval(text):
+    """argparse type: a number in (0, 1], as a discount or a Polyak rate."""
+    value = float(text)
+    if not 0 < value <= 1:
+        raise argparse.ArgumentTypeError(f"must be in (0, 1], got {text}")
     return value
 
 
@@ -150,6 +171,9 @@ def atomic_write(path, write):
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except (OSError, RuntimeError) as e:  # a full disk: OSError, or a RuntimeError from torch's zip writer
+        kept = f"; the previous {os.path.basename(path)} is kept" if os.path.exists(path) else ""
+        raise ConfigError(f"cannot write {path}: {first_line(e)}{kept}") from None
     finally:
         if os.path.exists(tmp):  # the write failed: leave no temp file behind
             os.remove(tmp)
@@ -198,6 +222,8 @@ def make_run_dir(output_dir, name, config):
     """Creates output_dir/name with config.json: what the run is (its method, every flag), the code
     that ran it (commit), the command and the CPU, which the run's steps_per_second means little
     without. Nothing of where it ran: no folder of this machine is written."""
+    if not name or name in (".", "..") or os.sep in name or (os.altsep and os.altsep in name):
+        raise ConfigError(f"--run-name {name!r}: a run name is a folder name, not a path")
     run_dir = os.path.join(output_dir, name)
     if os.path.exists(run_dir):
         raise ConfigError(f"run folder {run_dir} already exists (use --resume {run_dir} to continue it)")
@@ -207,7 +233,26 @@ def make_run_dir(output_dir, name, config):
     commit = git_commit()
     config |= {"command": command, "cpu": cpu_model()} | ({"commit": commit} if commit else {})
     atomic_write(os.path.join(run_dir, "config.json"), lambda f: f.write(json.dumps(config, indent=2).encode()))
+    lock_run_dir(run_dir)
     return run_dir
+
+
+_locks = {}  # run folder -> its open lock file: the lock lasts as long as the process
+
+
+def lock_run_dir(run_dir):
+    """Takes the run folder for this process (an OS lock that ends with the process, so a killed run
+    leaves no stale lock): a second process resuming the same run would overwrite its newer checkpoint."""
+    key = os.path.realpath(run_dir)
+    if key in _locks:  # this process holds it already (a run resumed in the same process)
+        return
+    f = open(os.path.join(run_dir, ".lock"), "a")
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.close()
+        raise ConfigError(f"{run_dir} is in use by another process (a run or --resume of it)") from None
+    _locks[key] = f
 
 
 def run_name(env_id, method, seed):
@@ -248,6 +293,31 @@ class ProgressLog:
                 if name != "global_step" and isinstance(value, (int, float)) and np.isfinite(value):
                     self.writer.add_scalar(f"progress/{name}", value, step)
             self.writer.flush()
+
+
+def progress_bar(total, initial, desc, warm_up=0, last_row=None):
+    """The training loop's tqdm bar from step `initial`, with the numbers of progress.csv's last row
+    (show_row). No time left is shown during the first `warm_up` steps: random steps run ten times as
+    fast as learning ones, and an estimate from them would promise minutes for hours."""
+    from tqdm import tqdm
+
+    class Bar(tqdm):
+        @property
+        def format_dict(self):
+            d = super().format_dict
+            if self.n < warm_up:
+                d["bar_format"] = "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}, warm-up{postfix}]"
+            return d
+    bar = Bar(total=total, initial=initial, desc=desc, unit="step", dynamic_ncols=True, mininterval=1.0)
+    if last_row is not None:  # a resumed run shows where it stood
+        show_row(bar, last_row)
+    return bar
+
+
+def show_row(bar, row):
+    """The last evaluation's return, the teacher threshold and alpha beside the bar."""
+    numbers = {"eval": f"{row['eval_return']:.0f}", "threshold": f"{row['teacher_threshold']:.0f}", "alpha": row["alpha"]}
+    bar.set_postfix({k: v for k, v in numbers.items() if v != "nan"}, refresh=False)
 
 
 def check_tensorboard(parser, args):
@@ -303,10 +373,14 @@ def load_checkpoint(path, parts=()):
     Every tensor is read onto the CPU, where buffers and RNG states live; a part's load_state_dict
     moves its tensors to the part's own device, so a run saved on cuda resumes on cuda or cpu."""
     import torch
+    import pickle
     try:
         state = _from_safe(torch.load(path, map_location="cpu", weights_only=True))
         for name, part in dict(parts).items():
             part.load_state_dict(state[name])
+    except pickle.UnpicklingError:  # torch's advice there is to load unsafely: not ours to give
+        raise ConfigError(f"{path} is not a checkpoint this project wrote (it holds objects that could run "
+                          "code when loaded); not loaded") from None
     except Exception as e:
         raise ConfigError(f"cannot read {path}: {first_line(e)}") from None
     return state
@@ -363,21 +437,24 @@ def read_config(run_dir):
         raise ConfigError(f"cannot read {path}: {first_line(e)}") from None
 
 
-def resume_config(run_dir, args, given, changeable):
+def resume_config(run_dir, args, given, changeable, script):
     """The saved run's flags, with the `changeable` ones taken anew where given on the command
-    line. Any other flag given is a ConfigError: a resumed run cannot honour it."""
+    line. Any other flag given is a ConfigError: a resumed run cannot honour it, nor can `script`
+    resume another script's run."""
     path = os.path.join(run_dir, "config.json")
     if not os.path.isfile(path):
         raise ConfigError(f"--resume {run_dir}: no config.json there (not a run folder)")
     if not os.path.isfile(os.path.join(run_dir, "checkpoint.pt")):
         raise ConfigError(f"--resume {run_dir}: no checkpoint.pt there (the run stopped before its first "
                           "checkpoint); start it again")
+    config = vars(read_config(run_dir))
+    if config.get("script", script) != script:
+        raise ConfigError(f"--resume {run_dir}: a run of {config['script']}, not of {script}")
     ignored = sorted(given - set(changeable) - {"resume"})
     if ignored:
         flags = ", ".join("--" + name.replace("_", "-") for name in ignored)
         allowed = ", ".join("--" + name.replace("_", "-") for name in changeable)
         raise ConfigError(f"--resume keeps the run's saved flags; {flags} cannot change (only {allowed} can)")
-    config = vars(read_config(run_dir))
     saved = {k: v for k, v in config.items() if k in vars(args)}  # the command line, the commit: not flags
     anew = {name: getattr(args, name) for name in changeable if name in given}
     return argparse.Namespace(**(vars(args) | saved | anew | {"resume": run_dir}))
@@ -390,11 +467,16 @@ def record_resume(run_dir, args, global_step, changeable):
     if args.total_timesteps < global_step:
         raise ConfigError(f"--resume {run_dir}: --total-timesteps {args.total_timesteps} is below the "
                           f"{global_step} steps the run has taken")
+    if args.total_timesteps == global_step:
+        raise ConfigError(f"--resume {run_dir}: the run has finished its {global_step} steps; give a larger "
+                          "--total-timesteps to continue it")
+    lock_run_dir(run_dir)
     config = vars(read_config(run_dir))
     now = {name: getattr(args, name) for name in changeable}
     if any(config.get(name) != value for name, value in now.items()):
         atomic_write(os.path.join(run_dir, "config.json"),
                      lambda f: f.write(json.dumps(config | now, indent=2).encode()))
+    print(f"resumed {run_dir} at step {global_step} of {args.total_timesteps}", flush=True)
 
 
 class StopRequest:

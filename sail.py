@@ -42,7 +42,6 @@ import time
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 import cpu_kernels
 from buffers import ReplayBuffer, TeacherBuffer, mixed_batch
@@ -80,8 +79,7 @@ SETUP = {"env", "algo", "method", "seed", "total_timesteps", "eval_freq", "eval_
 
 
 def parse_args(argv=None):
-    p = plumbing.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p = plumbing.ArgumentParser(description=__doc__.split("\n\n")[0])
     on_off, pos, nonneg = argparse.BooleanOptionalAction, positive_int, non_negative_float
     g = p.add_argument_group("experiment")
     g.add_argument("--env", default="Walker2d-v5", help="gymnasium env id (MuJoCo v5 or any Box-action env)")
@@ -101,12 +99,11 @@ def parse_args(argv=None):
     g.add_argument("--run-name", help="run folder name (default: <env>__<algo>__<seed>__<time>)")
     g.add_argument("--tensorboard", action="store_true", help="also log progress.csv as TensorBoard scalars")
     g.add_argument("--resume", metavar="RUN_DIR", help="continue the run saved in RUN_DIR with its flags")
-
     g = p.add_argument_group("TD3 learner")
     g.add_argument("--hidden", type=pos, nargs="+", default=[256, 256], help="actor/critic hidden sizes")
-    g.add_argument("--lr", type=nonneg, default=3e-4, help="Adam learning rate of actor and critic")
-    g.add_argument("--gamma", type=float, default=0.99, help="discount")
-    g.add_argument("--tau", type=nonneg, default=0.005, help="Polyak averaging rate of the target networks")
+    g.add_argument("--lr", type=plumbing.positive_float, default=3e-4, help="Adam learning rate of actor and critic")
+    g.add_argument("--gamma", type=plumbing.unit_interval, default=0.99, help="discount")
+    g.add_argument("--tau", type=plumbing.unit_interval, default=0.005, help="Polyak averaging rate of the target networks")
     g.add_argument("--batch-size", type=pos, default=256, help="TD3 batch; also R_E's and R_B's part of D's")
     g.add_argument("--policy-noise", type=nonneg, default=0.2, help="target policy smoothing noise std")
     g.add_argument("--noise-clip", type=nonneg, default=0.5, help="target policy smoothing noise clip")
@@ -115,7 +112,6 @@ def parse_args(argv=None):
     g.add_argument("--buffer-size", type=pos, default=1_000_000, help="capacity of R_B in transitions")
     g.add_argument("--critic-layer-norm", action=on_off, default=True, help="LayerNorm in the critics (RLPD's)")
     g.add_argument("--update-every", type=pos, default=1, help="env steps per group of as many updates (authors: 1000)")
-
     g = p.add_argument_group("reward")
     g.add_argument("--reward", choices=["sail", "airl", "env", "none"], default="sail",
                    help="-log(1-D), log D - log(1-D), the sparse env reward, or none (the credit alone)")
@@ -128,16 +124,14 @@ def parse_args(argv=None):
     g.add_argument("--decomposition-subset", type=pos, default=64, help="steps per episode per minibatch (RRD's K)")
     g.add_argument("--time-feature", action=on_off, default=True, help="append 1 - t/T to the observation")
     g.add_argument("--absorbing", action=on_off, default=False, help="DAC's absorbing states")
-
     g = p.add_argument_group("discriminator")
     g.add_argument("--disc-hidden", type=pos, nargs="+", default=[256, 256], help="hidden sizes (tanh)")
-    g.add_argument("--disc-lr", type=nonneg, default=1e-3, help="Adam learning rate")
+    g.add_argument("--disc-lr", type=plumbing.positive_float, default=1e-3, help="Adam learning rate")
     g.add_argument("--disc-freq", type=pos, default=500, help="env steps between discriminator trainings")
     g.add_argument("--disc-steps", type=pos, default=10, help="minibatches per discriminator training")
     g.add_argument("--grad-penalty", type=nonneg, default=10.0, help="gradient penalty weight")
     g.add_argument("--entropy-coef", type=nonneg, default=0.01, help="Bernoulli entropy bonus weight")
     g.add_argument("--disc-action-norm", action=on_off, default=True, help="normalise D's actions as its states")
-
     g = p.add_argument_group("SAIL and its ablations")
     g.add_argument("--alpha", type=float, default=0.5, help="R_E's share of TD3 batches before a promotion (0: no LfD)")
     g.add_argument("--teacher-capacity", type=pos, default=10_000, help="capacity of R_E in transitions")
@@ -161,8 +155,8 @@ def check_args(p, args):
     """What a single flag's type cannot check (counts and rates are checked by their types)."""
     if not 0.0 <= args.alpha <= 1.0:
         p.error(f"--alpha must be in [0, 1], got {args.alpha}")
-    if not 0.0 < args.gamma <= 1.0:
-        p.error(f"--gamma must be in (0, 1], got {args.gamma}")
+    if args.total_timesteps <= args.learning_starts and not args.resume:
+        p.error(f"--total-timesteps {args.total_timesteps} ends before --learning-starts {args.learning_starts}")
     if args.reward in ("env", "none") and not (args.alpha == 0 and args.no_adaptation):
         p.error(f"--reward {args.reward} learns without demos: it needs --alpha 0 and --no-adaptation "
                 f"(or --algo {'td3' if args.reward == 'env' else 'ircr'})")
@@ -188,10 +182,14 @@ def method_name(args):
     return PRESET_NAMES[args.algo] + (f" ({' '.join(flags)})" if flags else "")
 
 
-def td3_update(agent, disc, reward_model, teacher_buffer, self_buffer, s, args, unit):
-    """Eqs. (7) and (8): one TD3 step on a batch of alpha R_E + (1 - alpha) R_B, with the reward r'."""
-    batch, env_rewards, episode_returns = mixed_batch(teacher_buffer, self_buffer, args.batch_size, s.alpha,
-                                                      with_returns=args.return_bonus > 0)
+def update(parts, s, args, unit):
+    """A minibatch of the reward model, then Eqs. (7) and (8): one TD3 step on a batch of
+    alpha R_E + (1 - alpha) R_B, with the reward r'."""
+    agent, disc, reward_model = parts["agent"], parts["disc"], parts.get("reward_model")
+    stats = {} if reward_model is None else train_reward_model(
+        reward_model, parts["reward_optimizer"], parts["self_buffer"], args.batch_size, args.decomposition_subset)
+    batch, env_rewards, episode_returns = mixed_batch(parts["teacher_buffer"], parts["self_buffer"], args.batch_size,
+                                                      s.alpha, with_returns=args.return_bonus > 0)
     obs, actions, next_obs, terminated = (x.to(agent.device) for x in batch)
     if args.reward == "env":  # the TD3-sparse baseline: the env's own (sparse episodic) reward
         rewards = env_rewards.to(agent.device)
@@ -202,8 +200,7 @@ def td3_update(agent, disc, reward_model, teacher_buffer, self_buffer, s, args, 
     if args.return_bonus > 0:
         rewards = rewards + args.return_bonus * return_bonus(episode_returns.to(agent.device), s.return_range)
     actor_penalty = None
-    if reward_model is not None:
-        # in units of the per-step returns seen, so that the weight means the same whatever the reward's scale
+    if reward_model is not None:  # in the unit of the per-step returns seen, whatever the reward's scale
         with torch.no_grad():
             learned = reward_model(obs, actions, next_obs)
         rewards = rewards + args.return_decomposition * learned / unit
@@ -213,7 +210,7 @@ def td3_update(agent, disc, reward_model, teacher_buffer, self_buffer, s, args, 
     # DAC: in the absorbing state the only action is zero, as the agent and the demos act there
     next_action_mask = 1.0 - next_obs[:, -1:] if args.absorbing else None
     losses = agent.update(obs, actions, rewards, next_obs, terminated, next_action_mask, actor_penalty)
-    return losses | {"reward_mean": rewards.mean()}
+    return stats | losses | {"reward_mean": rewards.mean()}
 
 
 @dataclasses.dataclass
@@ -231,11 +228,10 @@ class LoopState:
     train_time: float = 0.0             # seconds of training (evaluations excluded)
     rows: list = dataclasses.field(default_factory=list)  # progress.csv
 
-    def record_return(self, episodic_return, length):
+    def record_return(self, ret, length):
         """An episode's return into the ranges that scale the return bonus and the learned reward."""
-        self.return_range = (min(self.return_range[0], episodic_return), max(self.return_range[1], episodic_return))
-        self.rate_range = (min(self.rate_range[0], episodic_return / length),
-                           max(self.rate_range[1], episodic_return / length))
+        self.return_range = (min(self.return_range[0], ret), max(self.return_range[1], ret))
+        self.rate_range = (min(self.rate_range[0], ret / length), max(self.rate_range[1], ret / length))
 
 
 def build(args, device, use_demos):
@@ -264,44 +260,47 @@ def build(args, device, use_demos):
     return parts
 
 
+def start(args, parts, device):
+    """The run folder, the loop's state, the first observation and the latest losses: those of the run in
+    --resume's folder, its parts loaded from its checkpoint; else a new run folder."""
+    agent, disc, reward_model = parts["agent"], parts["disc"], parts.get("reward_model")
+    if args.resume:
+        saved = plumbing.load_checkpoint(os.path.join(args.resume, "checkpoint.pt"), parts)
+        s, obs, stats = LoopState(**saved["loop"]), saved["obs"], dict(saved["stats"])
+        plumbing.record_resume(args.resume, args, s.global_step, RESUMABLE)
+        run_dir = args.resume
+    else:
+        kernels = cpu_kernels.choose(args.kernels, [agent.actor.net, agent.critic.q1.net, disc.net],
+                                     args.batch_size, device)
+        s, stats = LoopState(alpha=args.alpha, kernels=kernels), {}
+        for ret, data in parts["teacher_buffer"].episodes:
+            s.record_return(ret, len(data[0]))
+        obs, _ = parts["env"].env.reset()
+        config = {k: v for k, v in vars(args).items() if k != "given"} | {"script": "sail.py"}
+        run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(
+            args.env, args.algo, args.seed), config)
+    cpu_kernels.apply(s.kernels, [*agent.networks(), disc, *([reward_model] if reward_model else [])])
+    return run_dir, s, obs, stats
+
+
 def train(args):
     if args.resume:
-        args = plumbing.resume_config(args.resume, args, args.given, RESUMABLE)
+        args = plumbing.resume_config(args.resume, args, args.given, RESUMABLE, "sail.py")
     device = torch.device("cuda" if args.device == "cuda" or (args.device == "auto" and torch.cuda.is_available())
                           else "cpu")
     use_demos = args.reward in ("sail", "airl")  # D's reward needs R_E; the env's, IRCR's and RRD's do not
     parts = build(args, device, use_demos)
-    agent, disc, disc_optimizer, teacher_buffer, self_buffer = (
-        parts[k] for k in ("agent", "disc", "disc_optimizer", "teacher_buffer", "self_buffer"))
+    agent, disc, teacher_buffer, self_buffer = (parts[k] for k in ("agent", "disc", "teacher_buffer", "self_buffer"))
     env, eval_env, rng = parts["env"].env, parts["eval_env"].env, parts["rng"].rng
-    reward_model = parts.get("reward_model")
 
-    # From here on Ctrl-C and SIGTERM only set stop.requested: the loop stops between two steps
-    # and checkpoints, and the run can be resumed.
+    # From here on Ctrl-C and SIGTERM only set stop.requested: the loop stops, checkpoints, and can resume
     with plumbing.StopRequest() as stop:
-        if args.resume:
-            run_dir = args.resume
-            saved = plumbing.load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts)
-            s, obs, stats = LoopState(**saved["loop"]), saved["obs"], dict(saved["stats"])
-            plumbing.record_resume(run_dir, args, s.global_step, RESUMABLE)
-        else:
-            kernels = cpu_kernels.choose(args.kernels, [agent.actor.net, agent.critic.q1.net, disc.net],
-                                         args.batch_size, device)
-            s = LoopState(alpha=args.alpha, kernels=kernels)
-            for ret, data in teacher_buffer.episodes:
-                s.record_return(ret, len(data[0]))
-            obs, _ = env.reset()
-            stats = {}  # the latest losses, logged at each evaluation
-            config = {k: v for k, v in vars(args).items() if k != "given"}
-            run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(
-                args.env, args.algo, args.seed), config)
-        cpu_kernels.apply(s.kernels, [*agent.networks(), disc, *([reward_model] if reward_model else [])])
-        needs_returns = args.return_bonus > 0 or args.return_decomposition > 0
+        run_dir, s, obs, stats = start(args, parts, device)  # stats: the latest losses, logged at each evaluation
 
         def learning(step):
             """After the warm-up; with the return bonus or decomposition, also once an episode of its
             own has ended and two different returns were seen, since both scale by their range."""
-            return step >= args.learning_starts and not (needs_returns and (
+            return step >= args.learning_starts and not ((args.return_bonus > 0 or args.return_decomposition > 0) and (
                 math.isnan(s.train_episodic_return) or s.return_range[0] >= s.return_range[1]))
         was_learning = learning(s.global_step)
 
@@ -316,27 +315,25 @@ def train(args):
 
         print(f"run folder: {run_dir}\nCPU: {plumbing.cpu_model()}, kernels: {s.kernels}", flush=True)
         if use_demos:
-            print(f"teacher: {plumbing.count(teacher_buffer.num_episodes, 'episode')}, return "
-                  f"{np.mean(teacher_buffer.returns):.1f}", flush=True)
+            print(f"teacher: {plumbing.count(teacher_buffer.num_episodes, 'episode')}, "
+                  f"return {np.mean(teacher_buffer.returns):.1f}", flush=True)
         log = plumbing.ProgressLog(run_dir, plumbing.PROGRESS_COLUMNS, s.rows, args.tensorboard)
-        bar = tqdm(total=args.total_timesteps, initial=s.global_step, desc=f"{args.algo} {args.env}",
-                   unit="step", dynamic_ncols=True, mininterval=1.0)
+        bar = plumbing.progress_bar(args.total_timesteps, s.global_step, f"{args.algo} {args.env}", args.learning_starts,
+                                    s.rows[-1] if s.rows else None)
         clock, last_row = time.perf_counter(), (s.global_step, s.train_time)
         while s.global_step < args.total_timesteps and not stop.requested:
             s.global_step += 1
 
             # 1. act: uniformly random while R_B is initialised, then the actor plus Gaussian noise
-            if not learning(s.global_step - 1):
-                action = env.action_space.sample()
-            else:
-                action = agent.explore(obs, args.exploration_noise, rng)
+            action = (agent.explore(obs, args.exploration_noise, rng) if learning(s.global_step - 1)
+                      else env.action_space.sample())
             if args.absorbing and obs[-1] == 1.0:  # the absorbing state: a zero action, as in the demos
                 action = np.zeros_like(action)
             next_obs, reward, terminated, truncated, info = env.step(action)
             self_buffer.add(obs, action, reward, next_obs, terminated)
             obs = next_obs
 
-            # 2. adaptive teacher buffer: a whole episode better than the worst in R_E joins it
+            # 2. adaptive teacher buffer: an episode better than the worst in R_E joins it whole; alpha -> 0
             if terminated or truncated:
                 s.train_episodic_return = float(info["episode"]["r"])
                 length = (self_buffer.ptr - s.episode_start) % args.buffer_size
@@ -345,22 +342,19 @@ def train(args):
                 if not args.no_adaptation and teacher_buffer.promote(s.train_episodic_return,
                                                                      *self_buffer.latest(length)):
                     s.promotions += 1
-                    if s.first_promotion_step is None:
-                        s.first_promotion_step = s.global_step
+                    s.first_promotion_step = s.first_promotion_step or s.global_step
+                    s.alpha = s.alpha if args.fixed_alpha else 0.0
                 obs, _ = env.reset()
                 s.episode_start = self_buffer.ptr
-            # dynamic alpha: --alpha until the first promotion, then 0
-            if not args.fixed_alpha and s.first_promotion_step is not None:
-                s.alpha = 0.0
 
             if learning(s.global_step):
                 # 3. discriminator, Eq. (4): R_E against all of R_B (off-policy) or against its recent steps
                 if use_demos and (not was_learning or (s.global_step - args.learning_starts) % args.disc_freq == 0):
                     recent = args.disc_negatives == "recent" or (args.disc_negatives == "recent-after-promotion"
                                                                  and s.first_promotion_step is not None)
-                    stats.update(train_discriminator(disc, disc_optimizer, teacher_buffer, self_buffer, args.disc_steps,
-                                                     args.batch_size, args.entropy_coef, args.grad_penalty,
-                                                     args.on_policy_window if recent else None))
+                    stats.update(train_discriminator(
+                        disc, parts["disc_optimizer"], teacher_buffer, self_buffer, args.disc_steps, args.batch_size,
+                        args.entropy_coef, args.grad_penalty, args.on_policy_window if recent else None))
                 was_learning = True
 
                 # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)
@@ -368,10 +362,7 @@ def train(args):
                     unit = decomposition_unit(args.decomposition_unit, s.return_range, s.rate_range,
                                               env.max_episode_steps)
                     for _ in range(args.update_every):
-                        if reward_model is not None:
-                            stats.update(train_reward_model(reward_model, parts["reward_optimizer"], self_buffer,
-                                                            args.batch_size, args.decomposition_subset))
-                        stats.update(td3_update(agent, disc, reward_model, teacher_buffer, self_buffer, s, args, unit))
+                        stats.update(update(parts, s, args, unit))
                     # stop before a diverged actor acts in the env; the last checkpoint stays good
                     plumbing.check_finite(stats, f"at step {s.global_step}", run_dir)
 
@@ -387,8 +378,7 @@ def train(args):
                 log.append(row | {k: float(stats.get(k, float("nan"))) for k in plumbing.PROGRESS_COLUMNS
                                   if k not in row})
                 save_checkpoint()
-                bar.set_postfix(eval=f"{row['eval_return']:.0f}", threshold=f"{row['teacher_threshold']:.0f}",
-                                alpha=s.alpha, refresh=False)
+                plumbing.show_row(bar, row)
                 clock, last_row = time.perf_counter(), (s.global_step, s.train_time)  # evaluation left out
             bar.update(1)
         bar.close()
