@@ -5,21 +5,21 @@
 
 For each env: evaluation return against env steps, the mean over seeds of each method as a
 line and the range over seeds as a band, the teacher's return as a dashed line; BC (no env
-steps) as a dotted line at its final return. Writes <env>.png with SAIL and the baselines,
-<env>-ablations.png with SAIL, its ablations (fixed alpha, no LfD, on-policy D) and its learner
-variants (a changed --gamma) where there are any (needs matplotlib: `pip install matplotlib`;
-without it only the table is written);
-runs with N > 1 teacher episodes (--num-demos N) get their own <env>-Ndemos.png and section;
-results.md with, per env and method:
+steps) as a dotted line at its final return. A run's method is the "method" of its config.json
+(sail.py --method, default the preset's name plus the learner flags given; bc.py and gail.py
+write theirs), and the runs of one method are its seeds. Writes <env>.png with the presets and
+baselines (SAIL, SAIL-paper, DAC, TD3 (sparse), IRCR, RRD, BC, GAIL, POfD), and <env>-ablations.png
+with every other method (the paper's ablations, e.g. "SAIL-paper (--fixed-alpha)", and the learner
+variants) beside SAIL and SAIL-paper, where there are any (needs matplotlib: `pip install
+matplotlib`; without it only the table is written); runs with N > 1 teacher episodes (--num-demos N)
+get their own <env>-Ndemos.png and section; results.md with, per env and method:
 seeds, env steps, final return (mean of the last 5 evaluations, for BC its last one; mean +- std
-over seeds), the same for the Polyak-averaged target actor where a run evaluated it (its mean over
-seeds, then each seed's), the env steps at which the evaluation return first reached the teacher's, the
-env steps of the first promotion into the teacher buffer, and the mean evaluation return of the
-early phase (evaluations up to --early-steps, averaged over seeds).
+over seeds), the env steps at which the evaluation return first reached the teacher's, the env
+steps of the first promotion into the teacher buffer, and the mean evaluation return of the early
+phase (evaluations up to --early-steps, averaged over seeds).
 """
 
 import csv
-import functools
 import glob
 import json
 import os
@@ -29,7 +29,7 @@ from collections import defaultdict
 import numpy as np
 
 import plumbing
-from buffers import default_demo_path, read_minari
+from demos import default_demo_path, read_minari
 from plumbing import ArgumentParser, ConfigError, atomic_write, first_line
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -61,69 +61,21 @@ def parse_args(argv=None):
     return args
 
 
-# sail.py flags that say how a run was set up, measured or stored, not what it learned: runs that
-# differ only in these are seeds of one method (1 and 4 teacher episodes are kept apart by env)
-SETUP_FLAGS = {"env", "algo", "seed", "total_timesteps", "eval_freq", "eval_episodes", "demos", "num_demos", "device",
-               "threads", "kernels", "output_dir", "run_name", "save_model", "tensorboard", "resume", "checkpoint_freq",
-               "evaluate", "video", "eval_noise", "given"}
-ABLATION_FLAGS = {"no_adaptation": "no adaptation", "fixed_alpha": "fixed alpha", "no_lfd": "no LfD",
-                  "on_policy_disc": "on-policy D"}  # the paper's names
+# <env>.png: the presets of sail.py and the baselines of bc.py and gail.py, under the names the scripts give
+# them; every other method (a preset with flags set, in parentheses) goes to <env>-ablations.png beside SAIL
+# and SAIL-paper
+PRESETS = ("SAIL", "SAIL-paper", "DAC", "TD3 (sparse)", "IRCR", "RRD", "BC", "GAIL", "POfD")
+PAPER_SAIL = "SAIL-paper"  # drawn in both figures, as SAIL is
 
 
-@functools.cache
-def preset_defaults(algo):
-    """sail.py's default flags under --algo `algo`."""
-    from sail import parse_args
-    return vars(parse_args(["--algo", algo]))
-
-
-def setting(key, value):
-    """A learner flag and its value as words: "gamma 0.995", "no time feature", "hidden 64 64"."""
-    name = key.replace("_", " ")
-    if isinstance(value, bool):
-        return name if value else f"no {name}"
-    if isinstance(value, list):
-        return f"{name} {' '.join(map(str, value))}"
-    return f"{name} {value:g}" if isinstance(value, float) else f"{name} {value}"
-
-
-def method_name(config):
-    """The paper's name of what a run trained: its --algo, plus the ablation flags it set and every
-    other learner flag that differs from its preset's default in sail.py today (a flag missing from
-    an older run's config takes the value it had before the flag existed: sail.PREDATING). A SAIL
-    run is named from whichever of sail.py's defaults and the paper's SAIL it is nearer to (the
-    paper's where it is as near to both)."""
-    from sail import PRESETS
-    if config["algo"] not in PRESETS:  # gail.py and bc.py have defaults of their own
-        return ALGO_NAMES[config["algo"]]
-    presets = ("sail-paper", "sail") if config["algo"] in ("sail", "sail-paper") else (config["algo"],)  # ties: paper
-    name, flags = min(((ALGO_NAMES[algo], differences(config, preset_defaults(algo))) for algo in presets),
-                      key=lambda named: len(named[1]))
-    return f"{name} ({', '.join(flags)})" if flags else name
-
-
-ALGO_NAMES = {"sail": "SAIL", "sail-paper": "SAIL-paper", "dac": "DAC", "td3": "TD3 (sparse)", "ircr": "IRCR",
-              "rrd": "RRD", "bc": "BC", "gail": "GAIL", "pofd": "POfD"}
-
-
-def differences(config, defaults):
-    """The learner flags of a sail.py run's config that differ from `defaults`, as words."""
-    from sail import PREDATING
-    value = {key: config.get(key, PREDATING.get(key, default)) for key, default in defaults.items()}
-    # an ablation flag that the preset sets (DAC's and TD3's no-lfd) is part of the method, not an ablation
-    flags = [name if value[flag] else f"no {name}" for flag, name in ABLATION_FLAGS.items()
-             if bool(value[flag]) != bool(defaults[flag])]
-    return flags + [setting(key, value[key]) for key, default in defaults.items()
-                    if key not in SETUP_FLAGS and key not in ABLATION_FLAGS and value[key] != default
-                    and not moot(key, value)]
-
-
-def moot(key, value):
-    """A flag that means nothing beside the others' values: --on-policy-from without --on-policy-disc, the learned
-    action cost without the return decomposition, and the actor's share of it without that cost."""
-    return ((key == "on_policy_from" and not value["on_policy_disc"])
-            or (key == "decomposition_action_cost" and not value["return_decomposition"])
-            or (key == "actor_action_cost" and not (value["return_decomposition"] and value["decomposition_action_cost"])))
+def method_name(config, run_dir="the run"):
+    """What a run is: the "method" its config.json records (sail.py --method, bc.py, gail.py). Runs of
+    one method and env are the seeds of one line."""
+    method = config.get("method")
+    if not isinstance(method, str) or not method:
+        raise ConfigError(f"{run_dir}/config.json names no method (a run of older code: see "
+                          "results/archive/README.md)")
+    return method
 
 
 def teacher_return(config):
@@ -164,21 +116,14 @@ def summarise(runs, teacher, last, early_steps):
         reached.append(next((r["global_step"] for r in rows if r["eval_return"] >= teacher), None))
         promoted.append(next((r["global_step"] for r in rows if r["promotions"] > 0), None))
     steps = [rows[-1]["global_step"] for _, rows in runs]
-    # the Polyak-averaged target actor, evaluated beside the deployed policy (sail.py's --deploy)
-    targets = [np.mean([r.get("eval_return_target", np.nan) for r in rows[-last:]]) for _, rows in runs]
-    target = (f"{np.mean(targets):.0f} ({', '.join(f'{v:.0f}' for v in targets)})"
-              if not np.isnan(targets).any() else "")
 
     def when(values):
         return ", ".join("never" if v is None else f"{v / 1000:.0f}k" for v in values)
 
     return {"seeds": len(runs), "env steps": when(steps), "final": f"{np.mean(finals):.0f} +- {np.std(finals):.0f}",
-            "per seed": ", ".join(f"{v:.0f}" for v in finals), "target actor": target,
+            "per seed": ", ".join(f"{v:.0f}" for v in finals),
             "vs teacher": f"{np.mean(finals) / teacher:.2f}x",
             "reached teacher": when(reached), "first promotion": when(promoted), "early": f"{np.mean(early):.0f}"}
-
-
-PAPER_SAIL = "SAIL-paper"  # drawn with both
 
 
 def plot_env(env_id, num_demos, methods, teacher, path, colors):
@@ -223,13 +168,13 @@ def write_results(args):
                             if rows else os.path.basename(os.path.normpath(run)))
             continue
         key = (config["env"], config.get("num_demos", 1))  # 1 and 4 teacher episodes: apart
-        by_env[key][method_name(config)].append((run, rows))
+        by_env[key][method_name(config, run)].append((run, rows))
         if config["algo"] not in ("td3", "ircr"):  # no teacher episodes used
             teachers[key] = teacher_return(config)
     os.makedirs(args.output_dir, exist_ok=True)
 
-    columns = ["method", "seeds", "env steps", "final", "per seed", "target actor", "vs teacher", "reached teacher",
-               "first promotion", "early"]
+    columns = ["method", "seeds", "env steps", "final", "per seed", "vs teacher", "reached teacher", "first promotion",
+               "early"]
     lines = []
     for (env_id, num_demos), methods in sorted(by_env.items()):
         teacher = teachers.get((env_id, num_demos), float("nan"))
@@ -244,15 +189,16 @@ def write_results(args):
                 row |= {"env steps": "0", "reached teacher": "", "first promotion": "", "early": ""}
             lines.append("| " + " | ".join(str(row[c]) for c in columns) + " |")
         lines.append("")
-        # claims 4 and 5 and the learner variants (any method with a flag set) apart from the baselines
-        ablations = {m: runs for m, runs in methods.items() if m.startswith("SAIL")}
-        baselines = {m: runs for m, runs in methods.items() if m in ("SAIL", PAPER_SAIL) or m not in ablations}
+        # the presets and baselines in one figure; the paper's ablations and the variants beside SAIL and SAIL-paper
+        baselines = {m: runs for m, runs in methods.items() if m in PRESETS}
+        ablations = {m: runs for m, runs in methods.items() if m not in PRESETS or m in ("SAIL", PAPER_SAIL)}
         colors = {"SAIL": "C0", PAPER_SAIL: "C1"}  # the two drawn in both figures keep their colours; the
         for figure in (baselines, ablations):   # others take the next ones, so no two lines of a figure share one
             colors |= {m: f"C{i}" for i, m in enumerate(sorted(set(figure) - set(colors)), start=2)}
         try:
-            plot_env(env_id, num_demos, baselines, teacher, os.path.join(args.output_dir, f"{name}.png"), colors)
-            if len(ablations) > 1:
+            if baselines:
+                plot_env(env_id, num_demos, baselines, teacher, os.path.join(args.output_dir, f"{name}.png"), colors)
+            if set(ablations) - set(baselines):
                 plot_env(env_id, num_demos, ablations, teacher, os.path.join(args.output_dir, f"{name}-ablations.png"),
                          colors)
         except ImportError:
