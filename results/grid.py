@@ -23,7 +23,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
 sys.path.insert(0, REPO)
 from plumbing import ArgumentParser  # noqa: E402
-OFF_POLICY = ["--total-timesteps", "300000", "--threads", "1", "--checkpoint-freq", "10000"]
+OFF_POLICY = ["--total-timesteps", "300000", "--threads", "1"]
 
 
 def grid(envs, methods, seeds):
@@ -32,207 +32,165 @@ def grid(envs, methods, seeds):
             for seed in seeds for env in envs for method, (script, flags) in methods.items()]
 
 
+def sail(method, *flags):
+    """A sail.py method: its flags, and the name its runs have in config.json (what plot.py draws, so a new
+    run of a line is named as the committed seeds of that line are)."""
+    return "sail.py", [*flags, "--method", method]
+
+
+# The flags are written out in full, not left to sail.py's defaults, so that a default that changes does not
+# change what a grid runs (test_sail.py checks each committed run against its line).
 PAPER = [*OFF_POLICY, "--algo", "sail-paper"]  # the paper's SAIL
 # the paper's SAIL with the return bonus, the base that each variant below adds its flags to
-BONUS = ("sail.py", [*PAPER, "--return-bonus", "1"])
+BONUS = [*PAPER, "--return-bonus", "1"]
 # the layer-normed critics with the on-policy D from the first promotion (several grids build on them)
-LN_ONPOLICY_FLAGS = ["--critic-layer-norm", "--on-policy-disc", "--on-policy-from", "promotion"]
-LN_ONPOLICY_PROMOTION = [*BONUS[1], *LN_ONPOLICY_FLAGS]
+LN_ONPOLICY_FLAGS = ["--critic-layer-norm", "--disc-negatives", "recent-after-promotion"]
+LN_ONPOLICY_PROMOTION = [*BONUS, *LN_ONPOLICY_FLAGS]
 # the layer-normed critics, the on-policy D, the rate-unit return decomposition and D's normalised actions: with the
-# return bonus, sail.py's defaults until the learned action cost joined them (2026-11-28)
+# return bonus, sail.py's defaults until the learned action cost joined them
 DAN_FLAGS = [*LN_ONPOLICY_FLAGS, "--return-decomposition", "1", "--decomposition-unit", "rate", "--disc-action-norm"]
-ACTION_COST = ["--decomposition-action-cost", "--actor-action-cost"]
-# the earlier defaults on sail.py as it is now: the same without the learned action cost
-FIVE_ADDITIONS = [*DAN_FLAGS, "--no-decomposition-action-cost", "--no-actor-action-cost"]
-DAC = ("sail.py", [*OFF_POLICY, "--algo", "dac"])
+# sail.py's defaults: those and the learned action cost, in the reward and in the actor's loss
+DEFAULTS = [*DAN_FLAGS, "--action-cost", "reward-and-actor"]
+# the earlier defaults: the same without the learned action cost
+FIVE_ADDITIONS = [*DAN_FLAGS, "--action-cost", "none"]
+DAC = sail("DAC", *OFF_POLICY, "--algo", "dac")
+ALL_ENVS = ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"]
 GRIDS = {
     # the runs behind README's tables of the paper's methods (300k env steps, 1 teacher episode)
     "evidence": (
-        grid(["Hopper-v5", "Walker2d-v5"], {"sail": ("sail.py", PAPER)}, [1, 2, 3])
+        grid(["Hopper-v5", "Walker2d-v5"], {"sail": sail("SAIL-paper", *PAPER)}, [1, 2, 3])
         + grid(["Hopper-v5", "Walker2d-v5"], {"bc": ("bc.py", ["--threads", "1"])}, [1, 2, 3])
-        + grid(["Hopper-v5", "Walker2d-v5"], {"no-adaptation": ("sail.py", [*PAPER, "--no-adaptation"])}, [1, 2])
-        + grid(["HalfCheetah-v5", "Swimmer-v5"], {"sail": ("sail.py", PAPER)}, [1, 2])
-        + grid(["Ant-v5"], {"sail": ("sail.py", PAPER)}, [1])
+        + grid(["Hopper-v5", "Walker2d-v5"],
+               {"no-adaptation": sail("SAIL-paper (--no-adaptation)", *PAPER, "--no-adaptation")}, [1, 2])
+        + grid(["HalfCheetah-v5", "Swimmer-v5"], {"sail": sail("SAIL-paper", *PAPER)}, [1, 2])
+        + grid(["Ant-v5"], {"sail": sail("SAIL-paper", *PAPER)}, [1])
         + grid(["Hopper-v5", "Walker2d-v5"], {"dac": DAC}, [1, 2])
         + grid(["HalfCheetah-v5", "Swimmer-v5"], {"dac": DAC}, [1])
-        + grid(["Hopper-v5", "Walker2d-v5"], {"td3": ("sail.py", [*OFF_POLICY, "--algo", "td3"])}, [1])
-        + grid(["Hopper-v5"], {name: ("sail.py", [*PAPER, flag]) for name, flag in (
-            ("no-lfd", "--no-lfd"), ("on-policy-disc", "--on-policy-disc"), ("fixed-alpha", "--fixed-alpha"))},
-            [1, 2, 3])),
+        + grid(["Hopper-v5", "Walker2d-v5"], {"td3": sail("TD3 (sparse)", *OFF_POLICY, "--algo", "td3")}, [1])
+        # the paper's ablations: SAIL without LfD, SAIL-OnPolicy, SAIL with a fixed alpha
+        + grid(["Hopper-v5"], {"no-lfd": sail("SAIL-paper (--alpha 0)", *PAPER, "--alpha", "0"),
+                               "on-policy-disc": sail("SAIL-paper (--disc-negatives recent)", *PAPER,
+                                                      "--disc-negatives", "recent"),
+                               "fixed-alpha": sail("SAIL-paper (--fixed-alpha)", *PAPER, "--fixed-alpha")},
+               [1, 2, 3])),
     # the paper's on-policy baselines, 1M env steps each (5-12 minutes a run with one thread, two side by side)
     "on-policy": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5"],
                       {"gail": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1"]),
                        "pofd": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1", "--pofd"])}, [1, 2, 3]),
     # the paper's SAIL with the return bonus, and DAC, five envs, 3 seeds, 300k env steps
-    "learning": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                     {"sail-return1": BONUS, "dac": DAC}, [1, 2, 3]),
+    "learning": grid(ALL_ENVS, {"sail-return1": sail("SAIL-paper (--return-bonus 1)", *BONUS), "dac": DAC},
+                     [1, 2, 3]),
     # a longer horizon (gamma 0.995), so that a fall ~130 steps ahead weighs on Q: the paper's SAIL, and with
     # the return bonus (on Ant-v5, where flips end or ruin 10-30% of the evaluation episodes)
-    "learning-gamma": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                           {"sail-gamma0.995": ("sail.py", [*PAPER, "--gamma", "0.995"]),
-                            "sail-return1-gamma0.995": ("sail.py", [*BONUS[1], "--gamma", "0.995"])}, [1, 2, 3]),
-    # the return bonus with each return scaled by its rank among R_B's (a percentile), not by the lowest and highest
-    "learning-return-rank": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                                 {"sail-return1-rank": ("sail.py", [*BONUS[1], "--return-scale", "rank"])}, [1, 2, 3]),
+    "learning-gamma": grid(ALL_ENVS, {
+        "sail-gamma0.995": sail("SAIL-paper (--gamma 0.995)", *PAPER, "--gamma", "0.995"),
+        "sail-return1-gamma0.995": sail("SAIL-paper (--gamma 0.995 --return-bonus 1)", *BONUS, "--gamma", "0.995")},
+        [1, 2, 3]),
     # a stronger return bonus (3x), against the minmax squeeze: D's reward otherwise outweighs it among good episodes
-    "learning-return3": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                             {"sail-return3": ("sail.py", [*BONUS[1], "--return-bonus", "3"])}, [1, 2, 3]),
+    "learning-return3": grid(ALL_ENVS, {"sail-return3": sail("SAIL-paper (--return-bonus 3)", *PAPER,
+                                                             "--return-bonus", "3")}, [1, 2, 3]),
     # no exploration noise (the authors' HalfCheetah setting), so that training episodes score as the
     # deterministic policy does and can beat the promotion bar (Ant-v5 noisy episodes never did)
-    "learning-noise0": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                            {"sail-noise0": ("sail.py", [*BONUS[1], "--exploration-noise", "0"])}, [1, 2, 3]),
+    "learning-noise0": grid(ALL_ENVS, {"sail-noise0": sail("SAIL-paper (--exploration-noise 0 --return-bonus 1)",
+                                                           *BONUS, "--exploration-noise", "0")}, [1, 2, 3]),
     # IRCR: the return bonus alone, without teacher or discriminator (what SAIL's imitation adds to it)
-    "learning-ircr": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                          {"ircr": ("sail.py", [*OFF_POLICY, "--algo", "ircr"])}, [1, 2, 3]),
+    "learning-ircr": grid(ALL_ENVS, {"ircr": sail("IRCR", *OFF_POLICY, "--algo", "ircr")}, [1, 2, 3]),
     # return decomposition (RRD): a learned per-step reward on top of the bonus base (weights 1 and 3), and alone
-    "learning-rrd": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                         {"sail-rrd1": ("sail.py", [*BONUS[1], "--return-decomposition", "1"]),
-                          "sail-rrd3": ("sail.py", [*BONUS[1], "--return-decomposition", "3"]),
-                          "sail-rrd1-rate": ("sail.py", [*BONUS[1], "--return-decomposition", "1",
-                                                         "--decomposition-unit", "rate"]),
-                          "rrd": ("sail.py", [*OFF_POLICY, "--algo", "rrd"])}, [1, 2, 3]),
+    "learning-rrd": grid(ALL_ENVS, {
+        "sail-rrd1": sail("SAIL-paper (--return-bonus 1 --return-decomposition 1)", *BONUS,
+                          "--return-decomposition", "1"),
+        "sail-rrd3": sail("SAIL-paper (--return-bonus 1 --return-decomposition 3)", *BONUS,
+                          "--return-decomposition", "3"),
+        "sail-rrd1-rate": sail("SAIL-paper (--return-bonus 1 --return-decomposition 1 --decomposition-unit rate)",
+                               *BONUS, "--return-decomposition", "1", "--decomposition-unit", "rate"),
+        "rrd": sail("RRD", *OFF_POLICY, "--algo", "rrd")}, [1, 2, 3]),
     # the authors' released networks and step size (400-300 hidden units, Adam lr 1e-3), on top of the bonus base
-    "learning-authors": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                             {"sail-authors": ("sail.py", [*BONUS[1], "--lr", "0.001", "--hidden", "400", "300"])},
-                             [1, 2, 3]),
+    "learning-authors": grid(ALL_ENVS, {"sail-authors": sail(
+        "SAIL-paper (--return-bonus 1 --lr 0.001 --hidden 400 300)", *BONUS, "--lr", "0.001",
+        "--hidden", "400", "300")}, [1, 2, 3]),
     # LayerNorm in the critics (as RLPD), on top of the bonus base
-    "learning-ln": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                        {"sail-ln": ("sail.py", [*BONUS[1], "--critic-layer-norm"])}, [1, 2, 3]),
+    "learning-ln": grid(ALL_ENVS, {"sail-ln": sail("SAIL-paper (--critic-layer-norm --return-bonus 1)", *BONUS,
+                                                   "--critic-layer-norm")}, [1, 2, 3]),
     # what R_E keeps: its best 2 episodes of 1000 steps instead of 10 (the threshold is then the second
     # best return seen), on top of the LayerNorm critics, whose HalfCheetah run stalled with a full R_E
-    "learning-teacher-capacity": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                                      {"sail-ln-cap2000": ("sail.py", [*BONUS[1], "--critic-layer-norm",
-                                                                       "--teacher-capacity", "2000"])},
-                                      [1, 2, 3]),
+    "learning-teacher-capacity": grid(ALL_ENVS, {"sail-ln-cap2000": sail(
+        "SAIL-paper (--critic-layer-norm --return-bonus 1 --teacher-capacity 2000)", *BONUS, "--critic-layer-norm",
+        "--teacher-capacity", "2000")}, [1, 2, 3]),
     # the LayerNorm critics (fastest start) together with the rate-unit return decomposition (largest
     # HalfCheetah and Swimmer gains), on top of the bonus base
-    "learning-ln-rrd": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                            {"sail-ln-rrd1-rate": ("sail.py", [*BONUS[1], "--critic-layer-norm",
-                                                               "--return-decomposition", "1",
-                                                               "--decomposition-unit", "rate"])}, [1, 2, 3]),
-    # n-step returns (3 steps) on top of the bonus base: a termination or a good stretch reaches the
-    # critic's target three steps sooner (Ant-v5's agent saw its early ends only a few steps ahead)
-    "learning-n-step": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                            {"sail-n3": ("sail.py", [*BONUS[1], "--n-step", "3"])}, [1, 2, 3]),
-    # RLPD's recipe on top of the layer norm and decomposition pair: two TD3 updates per env step
-    "learning-utd2": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                          {"sail-ln-rrd1-rate-utd2": ("sail.py", [*BONUS[1], "--critic-layer-norm",
-                                                                  "--return-decomposition", "1",
-                                                                  "--decomposition-unit", "rate", "--utd", "2"])},
-                          [1, 2, 3]),
-    # behaviour cloning of R_E in TD3+BC's form on top of the bonus base, at TD3+BC's weight
-    "learning-bc": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                        {"sail-bc0.4": ("sail.py", [*BONUS[1], "--bc-weight", "0.4"])}, [1, 2, 3]),
-    # a quadratic penalty on the actor's actions on top of the bonus base: Ant-v5's actors run about 1.3 times as
-    # far as its teacher but pay 1.8 times its control cost, which the sparse reward charges only at an episode's end
-    "learning-action-l2": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                               {"sail-al2-0.03": ("sail.py", [*BONUS[1], "--action-l2", "0.03"])}, [1, 2, 3]),
-    # pink exploration noise (Eberhard et al. 2023), so that whole episodes differ and the ratchet has better ones to keep
-    "learning-pink": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                          {"sail-pink": ("sail.py", [*BONUS[1], "--noise-beta", "1"])}, [1, 2, 3]),
+    "learning-ln-rrd": grid(ALL_ENVS, {"sail-ln-rrd1-rate": sail(
+        "SAIL (--disc-negatives all --action-cost none --no-disc-action-norm)", *BONUS, "--critic-layer-norm",
+        "--return-decomposition", "1", "--decomposition-unit", "rate")}, [1, 2, 3]),
     # D's negatives from the 2000 most recent transitions (the paper's SAIL-OnPolicy ablation) on top of the bonus
     # base: once the agent matches R_E, recent steps against R_E's best episodes is the contrast that pushes on
-    "learning-onpolicy": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                              {"sail-onpolicy": ("sail.py", [*BONUS[1], "--on-policy-disc"])}, [1, 2, 3]),
+    "learning-onpolicy": grid(ALL_ENVS, {"sail-onpolicy": sail(
+        "SAIL-paper (--disc-negatives recent --return-bonus 1)", *BONUS, "--disc-negatives", "recent")}, [1, 2, 3]),
     # the same with D's negatives from the whole R_B until the first promotion: the on-policy D slowed the
     # imitation phase (HalfCheetah-v5 seed 1: D 0.93 / 0.07 at 40k-50k steps, returns near -500 to 100k)
-    "learning-onpolicy-promotion": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                                        {"sail-onpolicy-promotion": ("sail.py", [*BONUS[1], "--on-policy-disc",
-                                                                                 "--on-policy-from", "promotion"])},
-                                        [1, 2, 3]),
+    "learning-onpolicy-promotion": grid(ALL_ENVS, {"sail-onpolicy-promotion": sail(
+        "SAIL-paper (--disc-negatives recent-after-promotion --return-bonus 1)", *BONUS,
+        "--disc-negatives", "recent-after-promotion")}, [1, 2, 3]),
     # the two phases' fixes together: LayerNorm critics (the imitation phase reached the teacher at 60-70k steps on
     # HalfCheetah instead of 150-170k, then its ratchet crawled) and the on-policy D after the first promotion
     # (the fastest ratchet on HalfCheetah: threshold 4062 -> 5248 in 120k steps, but first promoted only at 180k)
-    "learning-ln-onpolicy-promotion": grid(["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-                                           {"sail-ln-onpolicy-promotion": ("sail.py", LN_ONPOLICY_PROMOTION)}, [1, 2, 3]),
+    "learning-ln-onpolicy-promotion": grid(ALL_ENVS, {"sail-ln-onpolicy-promotion": sail(
+        "SAIL (--return-decomposition 0 --decomposition-unit range --no-disc-action-norm)", *LN_ONPOLICY_PROMOTION)},
+        [1, 2, 3]),
     # that pair with the rate-unit return decomposition: after the first promotion the pair's D rewards every
     # step alike (Swimmer-v5 seed 1 stalled there), and the decomposition, the one variant that lifted Swimmer,
     # credits the steps of an episode unlike each other
-    "learning-ln-onpolicy-promotion-rrd": grid(
-        ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-        {"sail-ln-onpolicy-promotion-rrd1-rate": ("sail.py", [
-            *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate"])}, [1, 2, 3]),
-    # that triple with the action penalty (the one change that took Ant-v5 past its teacher): the candidate
-    # default, measured as one configuration on every env
-    "learning-combined": grid(
-        ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-        {"sail-ln-onpolicy-promotion-rrd1-rate-al2-0.03": ("sail.py", [
-            *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate",
-            "--action-l2", "0.03"])}, [1, 2, 3]),
-    # the same with the penalty only on control beyond R_E's: on HalfCheetah-v5 (seed 1) the penalty on all of the
-    # actions held the actor at a third of the teacher's squared action and the run at its teacher's return, and
-    # Swimmer-v5's best learner spends 2.6 times its teacher's
-    "learning-budget": grid(
-        ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-        {"sail-ln-onpolicy-promotion-rrd1-rate-al2-0.03-budget": ("sail.py", [
-            *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate",
-            "--action-l2", "0.03", "--action-budget", "teacher"])}, [1, 2, 3]),
+    "learning-ln-onpolicy-promotion-rrd": grid(ALL_ENVS, {"sail-ln-onpolicy-promotion-rrd1-rate": sail(
+        "SAIL (--action-cost none --no-disc-action-norm)", *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1",
+        "--decomposition-unit", "rate")}, [1, 2, 3]),
     # the triple with D's actions normalised as its states: D's output hardly changed with the actions (Ant-v5:
     # 0.759-0.768 for the teacher's actions scaled 0-2x), so nothing in the reward told the actor what its
-    # control costs; an action penalty did, but held back the envs whose better gaits spend more
-    "learning-disc-action-norm": grid(
-        ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-        {"sail-ln-onpolicy-promotion-rrd1-rate-dan": ("sail.py", [*OFF_POLICY, *FIVE_ADDITIONS])}, [1, 2, 3]),
-    # the same with a learned quadratic action cost in the decomposition's reward (--decomposition-action-cost): on
+    # control costs
+    "learning-disc-action-norm": grid(ALL_ENVS, {"sail-ln-onpolicy-promotion-rrd1-rate-dan": sail(
+        "SAIL (--action-cost none)", *OFF_POLICY, *FIVE_ADDITIONS)}, [1, 2, 3]),
+    # the same with a learned quadratic action cost in the decomposition's reward (--action-cost reward): on
     # Ant-v5 D stayed blind to the actions' size even so, and the per-step reward model learned about a fifth of
     # what they cost (results/rrd_probe.py); refitted with the explicit term on the same R_B it learned c = 0.385
     # (the env's 0.5); on HalfCheetah, Walker2d and Swimmer c stayed near where it started (0.0017-0.0030)
-    "learning-action-cost": grid(
-        ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-        {"sail-ln-onpolicy-promotion-rrd1-rate-dan-cost": ("sail.py", [
-            *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1", "--decomposition-unit", "rate",
-            "--disc-action-norm", "--decomposition-action-cost"])}, [1, 2, 3]),
-    # the same, with the actor charged that learned cost beside Q (--actor-action-cost): on Ant-v5 the critic's Q
-    # is nearly flat in the action (Q at the zero action within 0.4% of Q at the actor's), so the cost in the
-    # reward hardly reached the actor, and once the ant is upside down (Q near 0 whatever it does) the actor
+    "learning-action-cost": grid(ALL_ENVS, {"sail-ln-onpolicy-promotion-rrd1-rate-dan-cost": sail(
+        "SAIL (--action-cost reward)", *OFF_POLICY, *DAN_FLAGS, "--action-cost", "reward")}, [1, 2, 3]),
+    # the same, with the actor charged that learned cost beside Q (--action-cost reward-and-actor): on Ant-v5 the
+    # critic's Q is nearly flat in the action (Q at the zero action within 0.4% of Q at the actor's), so the cost
+    # in the reward hardly reached the actor, and once the ant is upside down (Q near 0 whatever it does) the actor
     # runs its actions into the bounds: an actor that takes the zero action there instead scores 1161 against
     # 577 (seed 3, 30 episodes; results/early_ends.py --rest-when-upside-down)
-    "learning-actor-cost": grid(
-        ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-        {"sail-dan-cost-actor": ("sail.py", [*OFF_POLICY, *DAN_FLAGS, *ACTION_COST])}, [1, 2, 3]),
-    # seeds 4 and 5 of sail.py's defaults and of that pair, on all five envs, so that the choice between them is
-    # made on 5 seeds each. Fixed before these runs started (2026-11-27): the pair becomes the default if its
-    # 5-seed mean (seeds 1-5, final = mean of the last 5 evaluations) is above the defaults' on at least three of
-    # the five envs; otherwise it stays a flag
-    "decide-actor-cost": grid(
-        ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"],
-        {"sail-ln-onpolicy-promotion-rrd1-rate-dan": ("sail.py", [*OFF_POLICY, *FIVE_ADDITIONS]),
-         "sail-dan-cost-actor": ("sail.py", [*OFF_POLICY, *DAN_FLAGS, *ACTION_COST])}, [4, 5]),
-    # Ant-v5 without its 78 contact forces in the observation (27 entries, Ant-v4's default; the paper's Ant-v2
-    # had them all zero under MuJoCo 2.0, openai/gym#1541): sparse foot-contact spikes that D may key on
-    "learning-no-contact": grid(["Ant-v5"], {"sail-nocontact": ("sail.py", [*BONUS[1], "--no-contact-forces"])},
-                                [1, 2, 3]),
-    # the five additions (sail.py's defaults before the learned action cost) for 1M env steps (a run's first 300k
-    # steps are the run of 300k with its seed: nothing in the learning depends on --total-timesteps, so a 300k run
-    # continued with --resume RUN_DIR --total-timesteps 1000000 is the same run as one started for 1M)
-    "long": grid(["Walker2d-v5", "HalfCheetah-v5"],
-                 {"sail-1M": ("sail.py", ["--total-timesteps", "1000000", "--threads", "1",
-                                          "--checkpoint-freq", "10000", *FIVE_ADDITIONS])},
-                 [2, 3]),
-    # sail.py's defaults (the five additions and the learned action cost) for 1M env steps: seeds 2 and 3 are
-    # their 300k runs of `learning-actor-cost`, continued with --resume --total-timesteps 1000000 (the run folder
-    # copied to this grid's runs folder first)
-    "long-actor-cost": grid(["Walker2d-v5", "HalfCheetah-v5"],
-                            {"sail-dan-cost-actor-1M": ("sail.py", [
-                                "--total-timesteps", "1000000", "--threads", "1", "--checkpoint-freq", "10000",
-                                *DAN_FLAGS, *ACTION_COST])}, [2, 3]),
+    "learning-actor-cost": grid(ALL_ENVS, {"sail-dan-cost-actor": sail("SAIL", *OFF_POLICY, *DEFAULTS)}, [1, 2, 3]),
+    # seeds 4 and 5 of the five additions and of that pair, on all five envs, so that the choice between them is
+    # made on 5 seeds each. Fixed before these runs started: the pair becomes the default if its 5-seed mean
+    # (seeds 1-5, final = mean of the last 5 evaluations) is above the five additions' on at least three of the
+    # five envs; otherwise it stays a flag (it became the default)
+    "decide-actor-cost": grid(ALL_ENVS, {
+        "sail-ln-onpolicy-promotion-rrd1-rate-dan": sail("SAIL (--action-cost none)", *OFF_POLICY, *FIVE_ADDITIONS),
+        "sail-dan-cost-actor": sail("SAIL", *OFF_POLICY, *DEFAULTS)}, [4, 5]),
+    # the five additions for 1M env steps (a run's first 300k steps are the run of 300k with its seed: nothing in
+    # the learning depends on --total-timesteps, so a 300k run continued with --resume RUN_DIR --total-timesteps
+    # 1000000 is the same run as one started for 1M)
+    "long": grid(["Walker2d-v5", "HalfCheetah-v5"], {"sail-1M": sail(
+        "SAIL (--action-cost none)", "--total-timesteps", "1000000", "--threads", "1", *FIVE_ADDITIONS)}, [2, 3]),
+    # sail.py's defaults for 1M env steps: seeds 2 and 3 are their 300k runs of `learning-actor-cost`, continued
+    # with --resume --total-timesteps 1000000 (the run folder copied to this grid's runs folder first)
+    "long-actor-cost": grid(["Walker2d-v5", "HalfCheetah-v5"], {"sail-dan-cost-actor-1M": sail(
+        "SAIL", "--total-timesteps", "1000000", "--threads", "1", *DEFAULTS)}, [2, 3]),
     # the bonus base for 1M env steps (seeds 2 and 3 were their 300k runs of `learning`, continued
     # with --resume --total-timesteps 1000000, which gives the same run as one started for 1M)
-    "long-bonus": grid(["Walker2d-v5", "HalfCheetah-v5"],
-                       {"sail-return1-1M": ("sail.py", ["--total-timesteps", "1000000", "--threads", "1",
-                                                    "--checkpoint-freq", "10000", "--algo", "sail-paper",
-                                                    "--return-bonus", "1"])},
-                       [1, 2, 3]),
+    "long-bonus": grid(["Walker2d-v5", "HalfCheetah-v5"], {"sail-return1-1M": sail(
+        "SAIL-paper (--return-bonus 1)", "--total-timesteps", "1000000", "--threads", "1", "--algo", "sail-paper",
+        "--return-bonus", "1")}, [1, 2, 3]),
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
-                       {"sail-4demos": ("sail.py", [*PAPER, "--num-demos", "4"]),
-                        "gail-4demos": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1", "--num-demos", "4"]),
-                        "dac-4demos": ("sail.py", [*DAC[1], "--num-demos", "4"])}, [1, 2, 3]),
+                       {"sail-4demos": sail("SAIL-paper", *PAPER, "--num-demos", "4"),
+                        "gail-4demos": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1",
+                                                    "--num-demos", "4"]),
+                        "dac-4demos": sail("DAC", *OFF_POLICY, "--algo", "dac", "--num-demos", "4")}, [1, 2, 3]),
     # a tiny grid that checks the machinery (GNU parallel, resuming) in a few seconds
-    "smoke": grid(["Pendulum-v1"], {"td3": ("sail.py", ["--algo", "td3", "--total-timesteps", "400",
-                                                        "--learning-starts", "200", "--eval-freq", "200",
-                                                        "--eval-episodes", "1", "--hidden", "16", "16",
-                                                        "--threads", "1"])}, [1, 2]),
+    "smoke": grid(["Pendulum-v1"], {"td3": sail("TD3 (sparse, smoke test)", "--algo", "td3", "--total-timesteps",
+                                                "400", "--learning-starts", "200", "--eval-freq", "200",
+                                                "--eval-episodes", "1", "--hidden", "16", "16", "--threads", "1")},
+                  [1, 2]),
 }
 
 
@@ -258,11 +216,13 @@ def run(runs_dir, name, script, flags):
     if finished(run_dir, total):
         print(f"{name}: finished")
         return 0
+    # as paths from the repository, where the script runs, so that its config.json names no folder of this machine
+    relative_runs, relative_run = os.path.relpath(runs_dir, REPO), os.path.relpath(run_dir, REPO)
     if os.path.isfile(os.path.join(run_dir, "checkpoint.pt")):
-        command = [script, "--resume", run_dir, *(["--total-timesteps", str(total)] if total else [])]
+        command = [script, "--resume", relative_run, *(["--total-timesteps", str(total)] if total else [])]
     else:
         shutil.rmtree(run_dir, ignore_errors=True)  # stopped before its first checkpoint: start again
-        command = [script, *flags, "--output-dir", runs_dir, "--run-name", name]
+        command = [script, *flags, "--output-dir", relative_runs, "--run-name", name]
     os.makedirs(runs_dir, exist_ok=True)
     with open(os.path.join(runs_dir, f"{name}.log"), "a") as log:
         print(f"{name}: {shlex.join(command)}", flush=True)
