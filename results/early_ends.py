@@ -36,10 +36,11 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from buffers import default_demo_path  # noqa: E402
+from credit import RewardModel, return_bonus  # noqa: E402
+from demos import default_demo_path  # noqa: E402
+from discriminator import Discriminator, shaped_reward  # noqa: E402
 from envs import make_env, rollout  # noqa: E402
 from plumbing import load_checkpoint, positive_int  # noqa: E402
-from sail import Discriminator, RewardModel, scale_returns, shaped_reward  # noqa: E402
 from td3 import TD3  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -57,8 +58,7 @@ for name in ("config.json", "checkpoint.pt"):
 config = json.load(open(os.path.join(args.run_dir, "config.json")))
 torch.set_num_threads(1)
 torch.set_grad_enabled(False)
-env = make_env(config["env"], args.seed, time_feature=config["time_feature"], absorbing=config["absorbing"],
-               contact_forces=config.get("contact_forces", True))
+env = make_env(config["env"], args.seed, time_feature=config["time_feature"], absorbing=config["absorbing"])
 agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low, env.action_space.high,
             hidden=config["hidden"], critic_layer_norm=config.get("critic_layer_norm", False))
 checkpoint = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), {"agent": agent})
@@ -177,7 +177,7 @@ if not ant:
     sys.exit(0)
 # Ant-v5: what the critic's reward and Q say on the way to a flip and after it (R_B's last 100k
 # transitions, by steps to the first step upside down of their episode), the reward as sail.py's
-# td3_update makes it from the checkpoint's D, reward model and ranges
+# update makes it from the checkpoint's D, reward model and ranges
 flipped_now = upside_down(obs.numpy())
 # each episode's first step upside down (R_B's index; -1 for none), by its start (R_B does not wrap in 300k steps)
 first_by_start = np.full(n, n)
@@ -191,12 +191,13 @@ with torch.no_grad():
         disc.load_state_dict(checkpoint["disc"])
         parts["D's reward"] = shaped_reward(disc, obs, actions, config["reward"])
     if config["return_bonus"] > 0:
-        seen = episode_returns_per_step[~torch.isnan(episode_returns_per_step)]  # finished transitions, as rank's
-        parts["return bonus"] = config["return_bonus"] * scale_returns(
-            episode_returns_per_step, config["return_scale"], checkpoint["loop"]["return_range"], seen.sort().values)
+        parts["return bonus"] = config["return_bonus"] * return_bonus(episode_returns_per_step,
+                                                                      checkpoint["loop"]["return_range"])
     if checkpoint.get("reward_model") is not None:
-        reward_model = RewardModel(obs.shape[1], actions.shape[1], config["hidden"],
-                                   config.get("decomposition_action_cost", False))
+        # the learned action cost: --action-cost reward or reward-and-actor (before it was one flag: its older name)
+        learn_action_cost = (config.get("action_cost", "none") != "none"
+                             or config.get("decomposition_action_cost", False))
+        reward_model = RewardModel(obs.shape[1], actions.shape[1], config["hidden"], learn_action_cost)
         reward_model.load_state_dict(checkpoint["reward_model"])
         low, high = checkpoint["loop"]["rate_range"] if config["decomposition_unit"] == "rate" else (
             np.array(checkpoint["loop"]["return_range"]) / env.max_episode_steps)

@@ -8,8 +8,8 @@ absorbing state, and the critic's min(Q1, Q2) there with the zero action and wit
 action, against its mean over the last 20k states of the self buffer (with the actor's action).
 For every run: the critic's Q1 at the actor's actions over up to 4096 states of the self buffer,
 its mean magnitude, its mean slope |dQ1/da| per action dimension and their ratio, the pull per
-unit on each action dimension of an actor's loss that divides Q by its magnitude (--bc-weight,
---action-l2); and D's mean output on the recorded teacher episodes of the run's demo file with one
+unit on each action dimension of an actor's loss that divides Q by its magnitude (as TD3+BC's
+does); and D's mean output on the recorded teacher episodes of the run's demo file with one
 observation (by default 8, the forward velocity of HalfCheetah-v5) scaled by 0.75 to 1.5, then
 with the teacher's actions scaled by 0 to 2 (clipped to the action bounds): how much D's reward
 depends on the action at all. Last, over the last 100k transitions of the self buffer, in 8 equal
@@ -28,10 +28,11 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from buffers import default_demo_path, load_demos  # noqa: E402
+from credit import RewardModel  # noqa: E402
+from demos import default_demo_path, load_demos  # noqa: E402
+from discriminator import Discriminator, shaped_reward  # noqa: E402
 from envs import absorbing_state, add_features  # noqa: E402
 from plumbing import load_checkpoint  # noqa: E402
-from sail import Discriminator, RewardModel, shaped_reward  # noqa: E402
 from td3 import Actor, TwinCritic  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -97,7 +98,9 @@ obs, actions, next_obs = (state["self_buffer"]["data"][i][recent] for i in (0, 1
 d_reward = shaped_reward(disc, obs, actions, config["reward"]) if config["reward"] in ("sail", "airl") else None
 learned = None
 if state.get("reward_model") is not None:
-    reward_model = RewardModel(obs_dim, act_dim, config["hidden"], config.get("decomposition_action_cost", False))
+    # the learned action cost: --action-cost reward or reward-and-actor (before it was one flag: its older name)
+    learn_action_cost = config.get("action_cost", "none") != "none" or config.get("decomposition_action_cost", False)
+    reward_model = RewardModel(obs_dim, act_dim, config["hidden"], learn_action_cost)
     reward_model.load_state_dict(state["reward_model"])
     learned = reward_model(obs, actions, next_obs)
 entry = obs[:, args.height_index]

@@ -15,16 +15,15 @@ only this probe reads it.
 --refit K [K ...] trains, for each subset size K, a fresh reward model on the run's self buffer
 R_B as sail.py does (`--decomposition-subset K`, --refit-steps minibatches), and prints the same
 action scaling over R_B's most recent 20k transitions (their own s, a, s'): whether a smaller or
-larger subset learns more of what actions cost from the same episodes. A run made with
---decomposition-action-cost (or any run, with --refit-action-cost) refits with it, and both report the
-learned weight c.
+larger subset learns more of what actions cost from the same episodes. A run made with the
+learned action cost (--action-cost reward or reward-and-actor; or any run, with --refit-action-cost)
+refits with it, and both report the learned weight c.
 """
 
 import argparse
 import json
 import os
 import sys
-import types
 
 import numpy as np
 import torch
@@ -32,8 +31,8 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from buffers import ReplayBuffer  # noqa: E402
 from envs import make_env  # noqa: E402
+from credit import RewardModel, train_reward_model  # noqa: E402
 from plumbing import load_checkpoint  # noqa: E402
-from sail import RewardModel, train_reward_model  # noqa: E402
 from td3 import TD3, make_adam  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -44,7 +43,7 @@ p.add_argument("--refit", type=int, nargs="*", default=[], metavar="K",
                help="subset sizes to train fresh reward models with on the run's R_B")
 p.add_argument("--refit-steps", type=int, default=5000, help="minibatches of each refit")
 p.add_argument("--refit-action-cost", action="store_true", help="refit with the learned quadratic action cost "
-               "(sail.py's --decomposition-action-cost) whether or not the run had it")
+               "(sail.py's --action-cost) whether or not the run had it")
 args = p.parse_args()
 for name in ("config.json", "checkpoint.pt"):
     if not os.path.isfile(os.path.join(args.run_dir, name)):
@@ -57,12 +56,12 @@ if any(k < 1 or k > config["batch_size"] for k in args.refit) or args.refit_step
 torch.set_num_threads(1)
 torch.set_grad_enabled(False)
 env = make_env(config["env"], args.seed, sparse=False, time_feature=config["time_feature"],
-               absorbing=config["absorbing"],
-               contact_forces=config.get("contact_forces", True))
+               absorbing=config["absorbing"])
 obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
 agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidden=config["hidden"],
             critic_layer_norm=config.get("critic_layer_norm", False))
-learn_action_cost = config.get("decomposition_action_cost", False)  # runs saved before the flag: without
+# the learned action cost: --action-cost reward or reward-and-actor (before it was one flag: its older name)
+learn_action_cost = config.get("action_cost", "none") != "none" or config.get("decomposition_action_cost", False)
 reward_model = RewardModel(obs_dim, act_dim, config["hidden"], learn_action_cost)
 self_buffer = ReplayBuffer(obs_dim, act_dim, config["buffer_size"])
 load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"),
@@ -108,10 +107,9 @@ for subset in args.refit:
     torch.manual_seed(args.seed)
     model = RewardModel(obs_dim, act_dim, config["hidden"], learn_action_cost or args.refit_action_cost)
     optimizer = make_adam(model.parameter_groups(config["lr"]), config["lr"])
-    refit_args = types.SimpleNamespace(batch_size=config["batch_size"], decomposition_subset=subset)
     with torch.enable_grad():
         for _ in range(args.refit_steps):
-            loss = train_reward_model(model, optimizer, self_buffer, refit_args)["decomposition_loss"]
+            loss = train_reward_model(model, optimizer, self_buffer, config["batch_size"], subset)["decomposition_loss"]
     learned_cost = f", c = {float(model.action_cost()):.4g}" if model.action_cost_rho is not None else ""
     print(f"refit with subsets of {subset} steps, {args.refit_steps} minibatches (last loss {float(loss):.4g}"
           f"{learned_cost}), on R_B's last {len(recent)} transitions:")
