@@ -188,7 +188,7 @@ GRIDS = {
                         "dac-4demos": sail("DAC", *OFF_POLICY, "--algo", "dac", "--num-demos", "4")}, [1, 2, 3]),
     # a tiny grid that checks the machinery (GNU parallel, resuming) in a few seconds
     "smoke": grid(["Pendulum-v1"], {"td3": sail("TD3 (sparse, smoke test)", "--algo", "td3", "--total-timesteps",
-                                                "400", "--learning-starts", "200", "--eval-freq", "200",
+                                                "400", "--learning-starts", "100", "--eval-freq", "200",
                                                 "--eval-episodes", "1", "--hidden", "16", "16", "--threads", "1")},
                   [1, 2]),
 }
