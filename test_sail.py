@@ -1917,22 +1917,25 @@ def test_the_learned_action_cost_is_a_default_that_turns_off_with_what_it_needs_
 
 
 def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_path, capsys):
-    """Two seeds of made-up CSVs: the table's numbers are computed from them as README says."""
+    """Two seeds of made-up CSVs: the table's numbers are computed from them as README says; runs are
+    named and pooled by the method their config.json records, whatever their flags."""
+    from plumbing import PROGRESS_COLUMNS
     runs = []
-    for seed, returns, num_demos, gamma in ((1, [100, 900, 1400, 1500, 1600, 1700, 1800], 1, 0.99),
-                                            (2, [100, 200, 300, 400, 500, 600, 700], 1, 0.99),
-                                            (1, [100, 200, 300, 400, 500, 600, 700], 4, 0.99),  # 4 episodes: apart
-                                            (1, [100, 200, 300, 400, 500, 600, 800], 1, 0.995)):  # a variant: apart
-        run = tmp_path / f"Hopper-v5__sail-{num_demos}-{gamma}__{seed}"
+    for seed, returns, num_demos, method, gamma in (
+            (1, [100, 900, 1400, 1500, 1600, 1700, 1800], 1, "SAIL", 0.99),
+            (2, [100, 200, 300, 400, 500, 600, 700], 1, "SAIL", 0.995),  # the method, not the flags, pools it
+            (1, [100, 200, 300, 400, 500, 600, 700], 4, "SAIL", 0.99),  # 4 episodes: apart
+            (1, [100, 200, 300, 400, 500, 600, 800], 1, "SAIL (--gamma 0.995)", 0.995)):  # another method: apart
+        run = tmp_path / f"Hopper-v5__run-{len(runs)}__{seed}"
         run.mkdir()
-        config = DEFAULT_CONFIG | {"env": "Hopper-v5", "seed": seed, "num_demos": num_demos, "gamma": gamma}
+        config = {"env": "Hopper-v5", "algo": "sail", "method": method, "seed": seed, "num_demos": num_demos,
+                  "demos": None, "gamma": gamma}
         (run / "config.json").write_text(json.dumps(config))
-        rows = [{k: "nan" for k in CSV_COLUMNS} | {"global_step": 10_000 * (i + 1), "eval_return": r,
-                                                    "eval_return_target": r + 10 * seed if gamma == 0.99 else "nan",
-                                                    "promotions": int(seed == 1 and i >= 2)}
+        rows = [{k: "nan" for k in PROGRESS_COLUMNS} | {"global_step": 10_000 * (i + 1), "eval_return": r,
+                                                        "promotions": int(seed == 1 and i >= 2)}
                 for i, r in enumerate(returns)]
         with open(run / "progress.csv", "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
+            writer = csv.DictWriter(f, fieldnames=PROGRESS_COLUMNS)
             writer.writeheader()
             writer.writerows(rows)
         runs.append(str(run))
@@ -1947,17 +1950,19 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
     teacher = float(np.load(os.path.join(HERE, "demos", "Hopper-v5.npz"))["episode_returns"][0])
     assert f"(teacher {teacher:.0f})" in table
     # final = mean of the last 5 evaluations: 1600 and 500, so 1050 +- 550 over the seeds
-    # the target actor's final the same way (1610 and 520), empty where a run has no such column
-    assert "| SAIL | 2 | 70k, 70k | 1050 +- 550 | 1600, 500 | 1065 (1610, 520) | 0.80x |" in table
+    assert "| SAIL | 2 | 70k, 70k | 1050 +- 550 | 1600, 500 | 0.80x |" in table
     # first return >= teacher (1317); first promotion; the mean up to 30k: 800 and 200 over the seeds
     assert "| 30k, never | 30k, never | 500 |" in table
     teacher4 = float(np.mean(np.load(os.path.join(HERE, "demos", "Hopper-v5.npz"))["episode_returns"][:4]))
     assert f"### Hopper-v5, 4 teacher episodes (teacher {teacher4:.0f})" in table
     assert "| SAIL | 1 | 70k | 500 +- 0 | 500 |" in table
-    assert "| SAIL (gamma 0.995) | 1 | 70k | 520 +- 0 | 520 |  | 0.39x |" in table
+    assert "| SAIL (--gamma 0.995) | 1 | 70k | 520 +- 0 | 520 | 0.39x |" in table
+    assert "target actor" not in table
+    # <env>.png: the presets and baselines; <env>-ablations.png: every other method, beside SAIL
     assert sorted(p.name for p in (tmp_path / "plots").glob("*.png")) == ["Hopper-v5-4demos.png",
                                                                          "Hopper-v5-ablations.png", "Hopper-v5.png"]
-    # a damaged run or a file as the output folder: one line, nothing written
+    # a damaged run, a run of older code that names no method, or a file as the output folder: one line,
+    # nothing written
     import shutil
 
     import plot
@@ -1967,31 +1972,17 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
     damaged_config = tmp_path / "damaged-config"
     shutil.copytree(runs[0], damaged_config)
     (damaged_config / "config.json").write_text("{")
+    unnamed = tmp_path / "unnamed"
+    shutil.copytree(runs[0], unnamed)
+    (unnamed / "config.json").write_text(json.dumps({"env": "Hopper-v5", "algo": "sail", "num_demos": 1}))
     out = ["--output-dir", str(tmp_path / "out")]
-    for argv in ([str(broken), *out], [str(damaged_config), *out],
+    for argv in ([str(broken), *out], [str(damaged_config), *out], [str(unnamed), *out],
                  [runs[0], "--output-dir", os.path.join(HERE, "README.md")]):
         assert_one_line_error(main_in_process(plot.main, argv, capsys))
     assert not os.path.exists(tmp_path / "out")
-    from plot import method_name
-    assert method_name({"algo": "gail", "gamma": 0.995}) == "GAIL"  # gail.py's own default, not a variant
-    assert method_name(DEFAULT_CONFIG) == "SAIL"
-    assert method_name(DEFAULT_CONFIG | {"return_scale": "rank"}) == "SAIL (return scale rank)"
-    # a SAIL run is named from the nearer of sail.py's defaults and the paper's SAIL (--algo sail-paper)
-    assert method_name(DEFAULT_CONFIG | {"on_policy_disc": False}) == "SAIL (no on-policy D)"  # --on-policy-from moot
-    assert method_name(DEFAULT_CONFIG | {"algo": "sail-paper"}) == "SAIL"
-    assert method_name(vars(sail.parse_args(["--algo", "sail-paper", "--on-policy-disc"]))) == \
-        "SAIL-paper (on-policy D)"
-    # flags missing from an older run's config take their values from before they existed (sail.PREDATING)
-    assert method_name({"algo": "sail", "return_bonus": 0.0, "gamma": 0.99}) == "SAIL-paper"
-    assert method_name({"algo": "sail", "return_bonus": 1.0}) == "SAIL-paper (return bonus 1)"
-    assert method_name({"algo": "sail", "no_lfd": True}) == "SAIL-paper (no LfD)"  # made before the bonus
-    assert method_name({"algo": "dac"}) == method_name({"algo": "dac", "return_bonus": 0.0}) == "DAC"
-    # any learner flag off its default names a variant; how a run was set up or stored does not
-    assert method_name(DEFAULT_CONFIG | {"exploration_noise": 0.0}) == "SAIL (exploration noise 0)"
-    assert method_name(DEFAULT_CONFIG | {"time_feature": False, "hidden": [64, 64]}) == \
-        "SAIL (hidden 64 64, no time feature)"
-    assert method_name(DEFAULT_CONFIG | {"seed": 3, "threads": 1, "total_timesteps": 5, "output_dir": "elsewhere",
-                                         "checkpoint_freq": 7, "num_demos": 4}) == "SAIL"
+    # the figures' rule: every name sail.py, bc.py and gail.py give a run without flags is a preset
+    assert set(sail.PRESET_NAMES.values()) | {"BC", "GAIL", "POfD"} == set(plot.PRESETS)
+    assert plot.method_name({"algo": "gail", "method": "POfD", "gamma": 0.995}) == "POfD"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -2132,13 +2123,19 @@ def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path, c
     assert_one_line_error(main_in_process(grid_module.main, ["local", "smoke", grid], capsys))  # a file
     # locally through GNU parallel (a second call starts nothing: its job log); beside it, a run stopped
     # half-way, which continues from its checkpoint when its line runs again
-    flags = lines[0].split(" sail.py ")[1].split()
+    import shlex
+    flags = shlex.split(lines[0].split(" sail.py ")[1])  # --method NAME is quoted: its name has spaces
     half = [*flags[:flags.index("--total-timesteps") + 1], "200", *flags[flags.index("--total-timesteps") + 2:]]
     local, stopped = run_scripts((grid, "local", "smoke", runs, "--jobs", "2"),
                                  (grid, "run", str(tmp_path / "other"), "r", "sail.py", *half))
     assert local.returncode == 0 and stopped.returncode == 0
     for seed in (1, 2):
         assert int(read_csv(tmp_path / "runs" / f"Pendulum-v1__td3__{seed}")[-1]["global_step"]) == 400
+        # the line's --method names the run; the run folder is given as a path from the repository
+        with open(tmp_path / "runs" / f"Pendulum-v1__td3__{seed}" / "config.json") as f:
+            config = json.load(f)
+        assert config["method"] == flags[flags.index("--method") + 1]
+        assert not any(os.path.isabs(word) for word in shlex.split(config["command"])[1:]), config["command"]
     before = (tmp_path / "runs" / "joblog").read_text()
     assert run_script(grid, "local", "smoke", runs, "--jobs", "2").returncode == 0
     assert (tmp_path / "runs" / "joblog").read_text() == before
@@ -2149,23 +2146,36 @@ def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path, c
 
 
 def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
-    """A committed run's config, learner flag by learner flag, is what its grid line gives sail.py as it is
-    now: a default that changes must leave the grids of the older runs writing the old value out."""
-    from plot import SETUP_FLAGS
-    checked = 0
+    """A committed run's config (its method, env, seed, teacher episodes and every learner flag) is what its
+    grid line gives sail.py as it is now: a default that changes must leave the grids of the older runs
+    writing the old value out. Every committed run is some grid line's, named as a new run of that line is."""
+    folders = ("runs", os.path.join("long", "runs"), "learning")
+    committed = {os.path.join(folder, name) for folder in folders
+                 for name in os.listdir(os.path.join(HERE, "results", folder))}
+    found, checked = set(), 0
     for entries in load_grid_module().GRIDS.values():
         for name, script, flags in entries:
-            for folder in ("runs", os.path.join("long", "runs")):
+            for folder in folders:
                 path = os.path.join(HERE, "results", folder, name, "config.json")
-                if script != "sail.py" or not os.path.isfile(path):
+                if not os.path.isfile(path):
                     continue
+                found.add(os.path.join(folder, name))
                 with open(path) as f:
                     config = json.load(f)
-                args = {key: value for key, value in vars(sail.parse_args(flags)).items() if key not in SETUP_FLAGS}
-                saved = {key: config.get(key, sail.PREDATING.get(key, value)) for key, value in args.items()}
-                assert saved == args, (name, {key: (saved[key], args[key]) for key in args if saved[key] != args[key]})
+                if script != "sail.py":  # bc.py and gail.py name their runs themselves
+                    assert config["method"] == {"bc.py": "BC", "gail.py": "POfD" if "--pofd" in flags else "GAIL"}[
+                        script], path
+                    continue
+                args = vars(sail.parse_args(flags))
+                keys = [key for key in args if key not in sail.SETUP and key != "given"] + [
+                    "method", "env", "seed", "num_demos"]
+                saved = {key: config.get(key, "(missing)") for key in keys}
+                wanted = {key: args[key] for key in keys}
+                assert saved == wanted, (path, {key: (saved[key], wanted[key]) for key in keys
+                                                if saved[key] != wanted[key]})
                 checked += 1
-    assert checked > 100
+    assert found == committed, sorted(committed - found)
+    assert checked > 150
 
 
 def test_grid_list_into_a_closed_pipe_is_quiet():
