@@ -13,10 +13,11 @@ import torch
 import torch.nn.functional as F
 
 import cpu_kernels
-from buffers import ReplayBuffer, TeacherBuffer, load_demos, mixed_batch, save_demos
+from buffers import ReplayBuffer, TeacherBuffer, mixed_batch
+from demos import load_demos, save_demos
 from envs import absorbing_state, add_features, get_env_state, make_env, rollout, set_env_state
 from plumbing import ConfigError
-from td3 import TD3, colored_noise, make_adam
+from td3 import TD3, make_adam
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 # the tests that train networks in this process use small ones, which one thread runs as fast as
@@ -289,15 +290,14 @@ def test_episode_returns_mark_finished_episodes_only_and_wrap():
             buffer.end_episode(start, 10.0 * (i // 4))
             start = buffer.ptr
     torch.manual_seed(0)
-    (obs, *_), _, returns = buffer.sample_steps(2000, 1, with_returns=True)
-    obs = obs[:, 0]
+    (obs, *_), returns = buffer.sample_finished(2000)
     assert set(obs[:, 0].tolist()) == set(range(3, 12))  # 0-2 overwritten, 12 still running
     torch.testing.assert_close(returns, 10.0 * (obs[:, 0] // 4))
     teacher = TeacherBuffer(capacity=100)
     teacher.add_episode(50.0, *episode_arrays(0, 40))
     teacher.add_episode(80.0, *episode_arrays(1, 40))
-    (obs, *_), _, returns = teacher.sample_steps(500, 1, with_returns=True)
-    torch.testing.assert_close(returns, torch.where(obs[:, 0, 0] == 1, 80.0, 50.0))
+    obs, *_, returns = teacher.sample(500)
+    torch.testing.assert_close(returns, torch.where(obs[:, 0] == 1, 80.0, 50.0))
     state = buffer.state_dict()
     copy = ReplayBuffer(obs_dim=1, act_dim=1, capacity=10)
     copy.load_state_dict(state)
@@ -322,7 +322,7 @@ def test_promotion_rule_and_threshold():
     assert teacher.promote(70.0, *episode_arrays(4, 40))
     assert sorted(teacher.returns) == [60.0, 70.0, 80.0] and teacher.threshold == 60.0
     assert len(teacher) == 90
-    obs, actions, next_obs, terminated = teacher.sample(1000)
+    obs, actions, next_obs, terminated, returns = teacher.sample(1000)
     assert set(obs[:, 0].tolist()) == {1.0, 3.0, 4.0}
     assert obs.dtype == torch.float32
 
@@ -341,40 +341,11 @@ def test_mixed_sampling_proportions(alpha):
     self_buffer = ReplayBuffer(obs_dim=3, act_dim=2, capacity=100)
     for _ in range(50):
         self_buffer.add(np.zeros(3), np.zeros(2), 0.0, np.ones(3), 0.0)
-    (obs, actions, next_obs, terminated), rewards, mask, returns = mixed_batch(teacher, self_buffer, 256, alpha)
-    assert returns is None and (mask == 1).all()
-    assert obs.shape == (256, 1, 3) and actions.shape == (256, 1, 2) and terminated.shape == (256, 1)
-    assert int((obs[:, 0, 0] == 1.0).sum()) == round(alpha * 256)
+    (obs, actions, next_obs, terminated), rewards, returns = mixed_batch(teacher, self_buffer, 256, alpha)
+    assert returns is None
+    assert obs.shape == (256, 3) and actions.shape == (256, 2) and terminated.shape == (256,)
+    assert int((obs[:, 0] == 1.0).sum()) == round(alpha * 256)
     assert len(rewards) == 256 - round(alpha * 256)
-
-
-def test_n_step_runs_stay_inside_one_episode_and_stop_at_the_newest_step():
-    buffer = ReplayBuffer(obs_dim=1, act_dim=1, capacity=10)
-    start = 0
-    for i in range(13):  # episodes 0-3, 4-7, 8-11 (wraps; 0-2 overwritten), 12 running
-        buffer.add([i], [0], float(i), [i + 1], float(i == 7))
-        if i % 4 == 3:
-            buffer.end_episode(start, 1.0)
-            start = buffer.ptr
-    torch.manual_seed(0)
-    (obs, _, rewards, next_obs, terminated), mask, _ = buffer.sample_steps(2000, 3)
-    assert obs.shape == (2000, 3, 1) and mask.shape == (2000, 3)
-    first = obs[:, 0, 0]
-    assert set(first.tolist()) == set(range(3, 13))
-    end = torch.where(first < 12, first // 4 * 4 + 3, 12)  # each first step's episode ends there (12: newest)
-    torch.testing.assert_close(mask.sum(1), torch.clamp(end - first + 1, max=3))
-    kept = mask.bool()
-    torch.testing.assert_close(obs[..., 0][kept], (first[:, None] + torch.arange(3))[kept])  # consecutive, in order
-    torch.testing.assert_close(rewards[kept], obs[..., 0][kept])
-    torch.testing.assert_close(next_obs[kept], obs[kept] + 1)
-    # R_E: runs end with their episode
-    teacher = TeacherBuffer(capacity=100)
-    teacher.add_episode(50.0, *episode_arrays(0, 5))
-    teacher.add_episode(80.0, *episode_arrays(1, 4))
-    (obs, *_), mask, returns = teacher.sample_steps(1000, 4, with_returns=True)
-    for run, kept in zip(obs[..., 0], mask.bool()):
-        assert len(set(run[kept].tolist())) == 1 and kept[0] and (kept[:-1] >= kept[1:]).all()
-    assert sorted(set(mask.sum(1).tolist())) == [1.0, 2.0, 3.0, 4.0]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -464,7 +435,7 @@ def test_minari_datasets_round_trip_as_teacher_episodes(tmp_path, monkeypatch):
     """Episodes written as a Minari dataset (N+1 observations for N actions) load as the same
     transitions as the .npz demo file, by id from the local store and by folder; make_demos.py
     writes one; sail.py trains from one."""
-    from buffers import save_minari
+    from demos import save_minari
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "store"))  # the subprocesses' store too
     episodes = recorded_episodes()
     save_minari("test/hopper/teacher-v0", episodes, "Hopper-v5")
@@ -482,16 +453,17 @@ def test_minari_datasets_round_trip_as_teacher_episodes(tmp_path, monkeypatch):
         load_demos("test/hopper/teacher-v0", "Walker2d-v5", 17, 6)
     with pytest.raises(ConfigError, match="local Minari store"):
         load_demos("test/hopper/nothing-v0", "Hopper-v5", 11, 3)
-    proc = run_script("make_demos.py", "--env", "Hopper-v5", "--total-timesteps", "1500", "--learning-starts", "1000",
-                      "--eval-freq", "500", "--eval-episodes", "1", "--band", "-1000", "10000", "--num-episodes", "2",
-                      "--output", str(tmp_path / "made.npz"), "--minari", "test/hopper/made-v0")
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    made, trained = run_scripts(
+        ("make_demos.py", "--env", "Hopper-v5", "--total-timesteps", "1500", "--learning-starts", "1000",
+         "--eval-freq", "500", "--eval-episodes", "1", "--band", "-1000", "10000", "--num-episodes", "2",
+         "--output", str(tmp_path / "made.npz"), "--minari", "test/hopper/made-v0"),
+        ("sail.py", "--env", "Hopper-v5", "--demos", "test/hopper/teacher-v0", "--total-timesteps", "600",
+         "--learning-starts", "300", "--eval-freq", "300", "--disc-freq", "100",
+         "--output-dir", str(tmp_path), "--run-name", "run", *TINY))
+    assert made.returncode == 0, made.stderr[-3000:]
     assert [ep["episodic_return"] for ep in load_demos("test/hopper/made-v0", "Hopper-v5", 11, 3)] == pytest.approx(
         [ep["episodic_return"] for ep in load_demos(str(tmp_path / "made.npz"), "Hopper-v5", 11, 3)])
-    proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", "test/hopper/teacher-v0", "--total-timesteps", "600",
-                      "--learning-starts", "300", "--eval-freq", "300", "--disc-freq", "100",
-                      "--output-dir", str(tmp_path), "--run-name", "run", *TINY)
-    assert proc.returncode == 0 and "teacher: 1 episodes" in proc.stdout, proc.stderr[-3000:]
+    assert trained.returncode == 0 and "teacher: 1 episode," in trained.stdout, trained.stderr[-3000:]
 
 
 @pytest.mark.parametrize("env_id", sorted(SHIPPED))
@@ -504,35 +476,6 @@ def test_shipped_demos_load_and_are_sub_optimal(env_id):
     for ep in episodes:
         assert low <= ep["episodic_return"] <= high
         assert ep["episodic_return"] == pytest.approx(float(np.sum(ep["rewards"], dtype=np.float64)), rel=1e-4)
-
-
-def test_no_contact_forces_drops_the_last_observation_entries_online_and_from_the_demos():
-    """Ant-v5 without contact forces: the same steps and returns, the first 27 entries of the
-    observation; the teacher buffer loads the shipped 105-dim demos cut to the same entries."""
-    from buffers import load_teacher_buffer
-    full = make_env("Ant-v5", seed=4, sparse=False, time_feature=False)
-    cut = make_env("Ant-v5", seed=4, sparse=False, time_feature=False, contact_forces=False)
-    assert (cut.dropped_obs_dims, cut.observation_space.shape, full.dropped_obs_dims) == (78, (27,), 0)
-    obs_full, obs_cut = full.reset(seed=4)[0], cut.reset(seed=4)[0]
-    contact = 0.0
-    for _ in range(100):
-        np.testing.assert_array_equal(obs_cut, obs_full[:27])
-        action = full.action_space.sample()
-        obs_full, r_full, *_ = full.step(action)
-        obs_cut, r_cut, *_ = cut.step(action)
-        assert r_cut == r_full
-        contact += np.abs(obs_full[27:]).sum()
-    assert contact > 0  # there were contact forces to drop
-    env = make_env("Ant-v5", seed=0, contact_forces=False)  # with the time feature, as sail.py
-    demos = os.path.join(HERE, "demos", "Ant-v5.npz")
-    teacher_buffer = load_teacher_buffer(demos, "Ant-v5", env, 1, 10_000, time_feature=True, absorbing=False)
-    (obs, _, next_obs, _), _, _ = teacher_buffer.sample_steps(64, 1, False)
-    assert obs.shape[-1] == next_obs.shape[-1] == 28
-    raw = load_demos(demos, "Ant-v5", 105, 8, 1)[0]["observations"]
-    rows = {tuple(np.round(r, 5)) for r in raw[:, :27]}
-    assert all(tuple(np.round(r, 5)) in rows for r in obs.reshape(-1, 28)[:, :27].numpy())
-    with pytest.raises(ConfigError, match="no contact forces"):
-        make_env("Hopper-v5", seed=0, contact_forces=False)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -711,7 +654,7 @@ def test_make_demos_unreadable_checkpoint_is_one_line(tmp_path, capsys):
 
 def test_make_demos_checks_its_outputs_before_training_and_never_overwrites_without_force(tmp_path):
     import make_demos
-    from buffers import default_demo_path
+    from demos import default_demo_path
     assert make_demos.parse_args(["--env", "Hopper-v5"]).output == default_demo_path("Hopper-v5")  # not cwd-relative
     shipped = default_demo_path("Hopper-v5")
     before = os.path.getmtime(shipped)
@@ -765,7 +708,7 @@ def test_bernoulli_entropy_is_the_closed_form():
 
 
 def test_auto_kernels_choose_without_touching_the_run_rng_and_keep_the_networks_interchangeable():
-    from sail import Discriminator
+    from discriminator import Discriminator
     torch.manual_seed(0)
     disc = Discriminator(obs_dim=5, act_dim=2, hidden=[64, 64])
     state = torch.get_rng_state()
@@ -786,8 +729,9 @@ import csv  # noqa: E402
 import json  # noqa: E402
 
 import sail  # noqa: E402
-from sail import (CSV_COLUMNS, Discriminator, RewardModel, decomposition_unit, discriminator_loss,  # noqa: E402
-                  scale_returns, shaped_reward, td3_update, train_reward_model)
+from credit import RewardModel, decomposition_unit, train_reward_model  # noqa: E402
+from discriminator import Discriminator, discriminator_loss, shaped_reward  # noqa: E402
+from plumbing import PROGRESS_COLUMNS  # noqa: E402
 
 TINY = ["--hidden", "32", "32", "--disc-hidden", "32", "32", "--threads", "1", "--eval-episodes", "1"]
 
@@ -859,30 +803,34 @@ def test_discriminator_rewards_teacher_data_more_after_training():
 
 
 SMOKE = {
-    "sail": [],
+    # D's negatives: all of R_B until the first promotion (here before learning starts), then recent ones
+    "sail": ["--kernels", "torch"],
     "sail-paper": ["--algo", "sail-paper"],
     "fixed-alpha": ["--fixed-alpha"],
-    "no-lfd": ["--no-lfd"],
-    "no-adaptation": ["--no-adaptation", "--kernels", "torch"],
-    "on-policy-disc": ["--on-policy-from", "start", "--kernels", "torch"],  # the paper's on-policy ablation
-    # D's negatives from the whole R_B until the first promotion (never, without adaptation), then recent ones
-    "on-policy-from-promotion": ["--on-policy-disc", "--on-policy-from", "promotion", "--kernels", "torch"],
-    "on-policy-from-promotion-no-adaptation": ["--on-policy-disc", "--on-policy-from", "promotion", "--no-adaptation",
-                                               "--kernels", "torch"],
-    # with both regularisers of the actor's loss, and D on normalised actions
-    "anneal": ["--alpha-anneal-steps", "500", "--bc-weight", "0.4", "--action-l2", "0.1", "--action-budget", "teacher"],
+    "no-lfd": ["--alpha", "0"],
+    "no-adaptation": ["--no-adaptation", "--disc-negatives", "all", "--kernels", "torch"],
+    "recent-negatives": ["--disc-negatives", "recent", "--kernels", "torch"],  # the paper's SAIL-OnPolicy
+    # the default D's negatives without adaptation: no promotion, so all of R_B throughout
+    "recent-after-promotion-no-adaptation": ["--no-adaptation", "--kernels", "torch"],
     "no-return-bonus": ["--return-bonus", "0"],
-    "return-rank": ["--return-scale", "rank"],
     "dac": ["--algo", "dac"],
     "td3": ["--algo", "td3"],
     "ircr": ["--algo", "ircr"],
-    "rrd": ["--algo", "rrd", "--decomposition-subset", "16"],
-    # with n-step returns, which sum the decomposition's and D's rewards over 3 steps
-    "decomposition": ["--decomposition-subset", "16", "--decomposition-unit", "range", "--n-step", "3"],
-    # as RLPD: 2 updates per env step (with the default layer-normed critics)
-    "utd2": ["--kernels", "onednn", "--utd", "2"],
+    "rrd": ["--algo", "rrd", "--decomposition-subset", "16", "--method", "RRD (K 16)"],
+    "decomposition": ["--decomposition-subset", "16", "--decomposition-unit", "range", "--action-cost", "reward",
+                      "--kernels", "onednn" if cpu_kernels.AVAILABLE else "torch"],
     "bc": ["--bc-steps", "300", "--eval-freq", "100"],  # bc.py, with the run-folder flags of sail.py
 }
+
+
+def sail_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_range, reward_model=None, unit=1.0):
+    """sail.py's update on the given parts: with a reward model, one minibatch of it (here at a learning
+    rate of 0, so that it stays as the test set it), then one TD3 step with the reward r'."""
+    parts = {"agent": agent, "disc": disc, "teacher_buffer": teacher_buffer, "self_buffer": self_buffer}
+    if reward_model is not None:
+        parts |= {"reward_model": reward_model, "reward_optimizer": torch.optim.SGD(reward_model.parameters(), lr=0.0)}
+    state = sail.LoopState(alpha=alpha, kernels="torch", return_range=return_range)
+    return sail.update(parts, state, args, unit)
 
 
 def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
@@ -896,17 +844,15 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
     means = {}
     for bonus in (0.0, 2.0):
         torch.manual_seed(0)  # the same batch both times: the bonus draws no extra samples here
-        args = argparse.Namespace(batch_size=64, reward="sail", return_bonus=bonus, return_scale="minmax",
-                                  absorbing=False, return_decomposition=0.0, n_step=1, gamma=0.99, bc_weight=0.0,
-                                  action_l2=0.0, actor_action_cost=False)
-        means[bonus] = float(td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args,
+        args = argparse.Namespace(batch_size=64, reward="sail", return_bonus=bonus, absorbing=False,
+                                  return_decomposition=0.0, action_cost="none")
+        means[bonus] = float(sail_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args,
                                         return_range=(2.0, 12.0))["reward_mean"])
     assert means[2.0] - means[0.0] == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-5)
     # IRCR (--reward none): the bonus is the whole reward, D plays no part
-    args = argparse.Namespace(batch_size=64, reward="none", return_bonus=2.0, return_scale="minmax", absorbing=False,
-                              return_decomposition=0.0, n_step=1, gamma=0.99, bc_weight=0.0, action_l2=0.0,
-                              actor_action_cost=False)
-    ircr = td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
+    args = argparse.Namespace(batch_size=64, reward="none", return_bonus=2.0, absorbing=False,
+                              return_decomposition=0.0, action_cost="none", decomposition_subset=16)
+    ircr = sail_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
     assert float(ircr["reward_mean"]) == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-6)
     # return decomposition: a reward model that says 0.5 everywhere adds 3 * 0.5 / ((12 - 2) / 40) per step
     model = RewardModel(3, 2, [16])
@@ -914,8 +860,8 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
     torch.nn.init.constant_(model.net[-1].bias, 0.5)
     args.return_bonus, args.return_decomposition = 0.0, 3.0
     unit = decomposition_unit("range", (2.0, 12.0), (0.5, 3.0), episode_steps=40)
-    rrd = td3_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0),
-                     reward_model=model, decomposition_unit=unit)
+    rrd = sail_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0),
+                     reward_model=model, unit=unit)
     assert float(rrd["reward_mean"]) == pytest.approx(3.0 * 0.5 / (10.0 / 40), abs=1e-5)
     # --decomposition-unit rate: per-step returns 0.5 to 3.0 seen, whatever the time limit
     assert decomposition_unit("rate", (2.0, 12.0), (0.5, 3.0), episode_steps=40) == pytest.approx(2.5)
@@ -932,39 +878,6 @@ class _QuadraticQ(torch.nn.Module):
         return self.offset - ((action - self.best) ** 2).sum(-1)
 
 
-def test_behaviour_cloning_holds_the_actor_near_the_given_actions_against_q():
-    torch.manual_seed(0)
-    obs = torch.randn(64, 3)
-    final = {}
-    for weight in (0.0, 10.0):  # Q's best action is 0.5 everywhere; the cloned actions are -0.5
-        agent = TD3(obs_dim=3, act_dim=2, action_low=-np.ones(2), action_high=np.ones(2), hidden=(16, 16),
-                    policy_delay=1, lr=1e-2)
-        agent.critic.q1, agent.critic.q2 = _QuadraticQ([0.5, 0.5]), _QuadraticQ([0.5, 0.5])
-        bc = (obs, torch.full((64, 2), -0.5), weight) if weight else None
-        for _ in range(100):
-            agent.update(obs, torch.zeros(64, 2), torch.zeros(64), obs, torch.zeros(64), bc=bc)
-        final[weight] = agent.actor(obs).mean().item()
-    assert final[0.0] > 0.4  # Q alone: its best action
-    assert -0.5 < final[10.0] < -0.3  # cloning outweighs Q's pull ten to one, so near -0.5, a little towards 0.5
-
-
-def test_action_penalty_pulls_the_actor_towards_the_middle_of_its_range_against_q():
-    torch.manual_seed(0)
-    obs = torch.randn(64, 3)
-    final = {}
-    for weight in (0.0, 1.0):  # actions in [0, 2], whose middle is 1; Q's best action is 1.5 everywhere
-        agent = TD3(obs_dim=3, act_dim=2, action_low=np.zeros(2), action_high=2 * np.ones(2), hidden=(16, 16),
-                    policy_delay=1, lr=1e-2)
-        # Q about 10, so Q over its mean magnitude changes by 0.1 per unit of (a - 1.5)^2: the penalty (1 per
-        # unit of (a - 1)^2 per dimension) wins
-        agent.critic.q1, agent.critic.q2 = _QuadraticQ([1.5, 1.5], 10.0), _QuadraticQ([1.5, 1.5], 10.0)
-        for _ in range(100):
-            agent.update(obs, torch.ones(64, 2), torch.zeros(64), obs, torch.zeros(64), action_l2=weight)
-        final[weight] = agent.actor(obs).mean().item()
-    assert final[0.0] > 1.4  # Q alone: its best action
-    assert 1.0 < final[1.0] < 1.2  # the penalty outweighs Q's pull: near the middle, not at the bound 0
-
-
 def test_action_cost_moves_the_actor_to_the_best_action_of_q_minus_the_cost():
     """Q(s, a) = -|a - 0.6|^2 per dimension: charged c |a|^2 beside it, the actor's best action is
     0.6 / (1 + c), 0.3 for c = 1; a cost of 0 leaves it at Q's 0.6."""
@@ -976,16 +889,17 @@ def test_action_cost_moves_the_actor_to_the_best_action_of_q_minus_the_cost():
                     policy_delay=1, lr=1e-2)
         agent.critic.q1, agent.critic.q2 = _QuadraticQ([0.6, 0.6]), _QuadraticQ([0.6, 0.6])
         for _ in range(200):
-            agent.update(obs, torch.zeros(64, 2), torch.zeros(64), obs, torch.zeros(64), action_cost=cost)
+            agent.update(obs, torch.zeros(64, 2), torch.zeros(64), obs, torch.zeros(64),
+                         actor_penalty=lambda actions: cost * actions.pow(2).sum(-1))
         final[cost] = agent.actor(obs).mean().item()
     assert final[0.0] == pytest.approx(0.6, abs=0.03)
     assert final[1.0] == pytest.approx(0.3, abs=0.03)
 
 
 def test_actor_action_cost_charges_the_learned_cost_over_the_decomposition_unit():
-    """sail.py's td3_update with --actor-action-cost: the reward model's learned c (here 2, softplus of
-    its parameter) over the unit (2) and times --return-decomposition (1) charges the actor 1 x ||a||^2,
-    so against Q = -|a - 0.6|^2 its action goes to 0.3; without the flag it stays at Q's 0.6."""
+    """sail.py's update with --action-cost reward-and-actor: the reward model's learned c (here 2, softplus
+    of its parameter) over the unit (2) and times --return-decomposition (1) charges the actor 1 x ||a||^2,
+    so against Q = -|a - 0.6|^2 its action goes to 0.3; with --action-cost reward it stays at Q's 0.6."""
     import argparse
     self_buffer = ReplayBuffer(obs_dim=3, act_dim=2, capacity=100)
     rng = np.random.default_rng(0)
@@ -1001,88 +915,15 @@ def test_actor_action_cost_charges_the_learned_cost_over_the_decomposition_unit(
         agent = TD3(obs_dim=3, act_dim=2, action_low=-np.ones(2), action_high=np.ones(2), hidden=(16, 16),
                     policy_delay=1, lr=1e-2)
         agent.critic.q1, agent.critic.q2 = _QuadraticQ([0.6, 0.6]), _QuadraticQ([0.6, 0.6])
-        args = argparse.Namespace(batch_size=64, reward="none", return_bonus=0.0, return_scale="minmax",
-                                  absorbing=False, return_decomposition=1.0, n_step=1, gamma=0.99, bc_weight=0.0,
-                                  action_l2=0.0, actor_action_cost=charged)
+        args = argparse.Namespace(batch_size=64, reward="none", return_bonus=0.0, absorbing=False,
+                                  return_decomposition=1.0, decomposition_subset=16,
+                                  action_cost="reward-and-actor" if charged else "reward")
         for _ in range(200):
-            td3_update(agent, None, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(0.0, 1.0),
-                       reward_model=model, decomposition_unit=2.0)
+            sail_update(agent, None, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(0.0, 1.0),
+                       reward_model=model, unit=2.0)
         final[charged] = agent.actor(self_buffer.obs[:40]).mean().item()
     assert final[False] == pytest.approx(0.6, abs=0.03)
     assert final[True] == pytest.approx(0.3, abs=0.03)
-
-
-@pytest.mark.parametrize("budget, low, high", [(0.3, 1.4, 2.0), (0.09, 1.2, 1.4)])
-def test_action_budget_leaves_the_actions_free_up_to_it(budget, low, high):
-    """Q's best action 1.5 in [0, 2] is 0.5 half-ranges from the middle, a squared action of 0.25:
-    under a budget of 0.3 the penalty never acts; under 0.09 it holds the actor near 0.3
-    half-ranges (a about 1.25; without a budget near the middle, 1.0-1.2: the test above)."""
-    torch.manual_seed(0)
-    obs = torch.randn(64, 3)
-    agent = TD3(obs_dim=3, act_dim=2, action_low=np.zeros(2), action_high=2 * np.ones(2), hidden=(16, 16),
-                policy_delay=1, lr=1e-2)
-    agent.critic.q1, agent.critic.q2 = _QuadraticQ([1.5, 1.5], 10.0), _QuadraticQ([1.5, 1.5], 10.0)
-    for _ in range(100):
-        agent.update(obs, torch.ones(64, 2), torch.zeros(64), obs, torch.zeros(64), action_l2=1.0,
-                     action_budget=budget)
-    assert low < agent.actor(obs).mean().item() < high
-
-
-def test_teacher_action_budget_is_r_e_s_mean_squared_action_in_half_ranges():
-    from sail import teacher_action_budget
-    actor = TD3(obs_dim=1, act_dim=2, action_low=np.array([0.0, -2.0]), action_high=np.array([2.0, 2.0]),
-                hidden=(4,)).actor
-    teacher_buffer = TeacherBuffer(100)
-    # half-ranges 1 and 2 around 1 and 0: (0.5^2 + 0.5^2) and (1^2 + 0^2), mean over steps and dimensions 0.375
-    teacher_buffer.add_episode(1.0, np.zeros((2, 1)), np.array([[1.5, 1.0], [2.0, 0.0]]), np.zeros((2, 1)),
-                               np.zeros(2))
-    assert teacher_action_budget(teacher_buffer, actor) == pytest.approx(0.375)
-    # a promoted episode of smaller actions (squared 0.25 and 0) replaces the demo: the budget follows R_E
-    teacher_buffer = TeacherBuffer(2)
-    teacher_buffer.add_episode(1.0, np.zeros((2, 1)), np.array([[1.5, 1.0], [2.0, 0.0]]), np.zeros((2, 1)),
-                               np.zeros(2))
-    assert teacher_buffer.promote(2.0, np.zeros((2, 1)), np.array([[1.5, 0.0], [1.0, 0.0]]), np.zeros((2, 1)),
-                                  np.zeros(2))
-    assert teacher_action_budget(teacher_buffer, actor) == pytest.approx(0.0625)
-
-
-@pytest.mark.parametrize("beta", [0.0, 1.0, 2.0])
-def test_colored_noise_has_unit_variance_and_more_slow_drift_as_beta_grows(beta):
-    rng = np.random.default_rng(0)
-    noise = np.stack([colored_noise(beta, 1000, 2, rng) for _ in range(300)])  # (episodes, steps, dims)
-    assert noise.dtype == np.float32 and noise.shape == (300, 1000, 2)
-    assert abs(noise.std() - 1.0) < 0.05
-    lag1 = np.mean([np.corrcoef(episode[:-1, 0], episode[1:, 0])[0, 1] for episode in noise])
-    episode_means = noise.mean(1).std()  # how far a whole episode's actions are pushed one way
-    low, high = {0.0: (-0.02, 0.02), 1.0: (0.6, 0.9), 2.0: (0.97, 1.0)}[beta]
-    assert low < lag1 < high
-    assert episode_means > {0.0: 0.0, 1.0: 0.1, 2.0: 0.25}[beta]
-    if beta == 0.0:
-        assert episode_means < 0.05
-
-
-def test_n_step_target_sums_the_discounted_rewards_inside_the_episode_then_bootstraps():
-    import argparse
-    agent = TD3(obs_dim=1, act_dim=1, action_low=-np.ones(1), action_high=np.ones(1), hidden=(8, 8))
-    self_buffer = ReplayBuffer(obs_dim=1, act_dim=1, capacity=100)
-    for i in range(10):  # one episode, steps 0-9, terminated at its end
-        self_buffer.add([i], [0], 0.0, [i + 1], float(i == 9))
-    self_buffer.end_episode(0, 7.0)
-    seen = {}
-    agent.update = lambda obs, actions, rewards, next_obs, terminated, next_action_mask, discount, bc, **_: \
-        seen.update(obs=obs[:, 0], rewards=rewards, next_obs=next_obs[:, 0], terminated=terminated,
-                    discount=discount) or {}
-    # --reward none with the return bonus: every step's reward is (7 - 2) / (12 - 2) = 0.5
-    args = argparse.Namespace(batch_size=500, reward="none", return_bonus=1.0, return_scale="minmax", absorbing=False,
-                              return_decomposition=0.0, n_step=3, gamma=0.9, bc_weight=0.0, action_l2=0.0,
-                              actor_action_cost=False)
-    td3_update(agent, None, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
-    steps = torch.clamp(10 - seen["obs"], max=3)  # m: 3, or fewer before the episode's end
-    assert set(steps.tolist()) == {1.0, 2.0, 3.0}
-    torch.testing.assert_close(seen["rewards"], 0.5 * (1 - 0.9 ** steps) / (1 - 0.9))
-    torch.testing.assert_close(seen["next_obs"], seen["obs"] + steps)
-    torch.testing.assert_close(seen["terminated"], (seen["obs"] + steps == 10).float())
-    torch.testing.assert_close(seen["discount"], 0.9 ** steps)
 
 
 def test_episode_subsets_hold_steps_of_one_finished_episode_and_mask_overwritten_ones():
@@ -1131,15 +972,13 @@ def made_up_episodes(rng, act_dim, per_step_reward, act_scale=1.0):
 def test_return_decomposition_recovers_a_per_step_reward_from_episodic_returns():
     """Episodes of 2 to 16 steps whose hidden per-step reward is 2 * obs[0] - 1: only each
     episode's sum is stored, and the reward model learns the per-step reward from the sums."""
-    import argparse
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     buffer = made_up_episodes(rng, 1, lambda obs, actions: 2 * obs[:, 0] - 1, act_scale=0.0)
     model = RewardModel(2, 1, [32, 32])
     optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
-    args = argparse.Namespace(batch_size=256, decomposition_subset=16)
     for _ in range(1500):
-        loss = train_reward_model(model, optimizer, buffer, args)["decomposition_loss"]
+        loss = train_reward_model(model, optimizer, buffer, 256, 16)["decomposition_loss"]
     probe = torch.tensor(rng.uniform(-1, 1, (500, 2)), dtype=torch.float32)
     learned = model(probe, torch.zeros(500, 1), probe).detach()
     assert float(loss) < 0.05
@@ -1154,22 +993,20 @@ def test_decomposition_action_cost_learns_the_weight_of_a_quadratic_control_cost
     the quadratic itself (on Ant-v5 the runs' networks learned only part of it from episode sums):
     c, learned from the sums alone, comes near the hidden weight, and stays near 0 where the actions
     cost nothing."""
-    import argparse
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     buffer = made_up_episodes(rng, 8, lambda obs, actions: 2 * obs[:, 0] - 1 - cost_weight * (actions ** 2).sum(1))
     model = RewardModel(2, 8, [4], learn_action_cost=True)
     optimizer = torch.optim.Adam(model.parameter_groups(3e-3))
-    args = argparse.Namespace(batch_size=256, decomposition_subset=16)
     for _ in range(1500):
-        stats = train_reward_model(model, optimizer, buffer, args)
+        stats = train_reward_model(model, optimizer, buffer, 256, 16)
     assert float(stats["decomposition_loss"]) < 0.05
     assert float(stats["decomposition_action_cost"]) == pytest.approx(cost_weight, abs=0.15)
 
 
 def test_a_reward_model_saved_before_the_learned_action_cost_loads_without_it():
-    """Runs saved before --decomposition-action-cost resume: without the flag the reward model and its
-    optimizer (one parameter group, as make_adam(model.parameters()) built it) have the same state."""
+    """Runs saved before the learned action cost resume: without it (--action-cost none) the reward model and
+    its optimizer (one parameter group, as make_adam(model.parameters()) built it) have the same state."""
     torch.manual_seed(0)
     old = RewardModel(3, 2, [8, 8])
     old_optimizer = make_adam(old.parameters(), 3e-4)
@@ -1183,84 +1020,40 @@ def test_a_reward_model_saved_before_the_learned_action_cost_loads_without_it():
     assert torch.equal(new_optimizer.state_dict()["state"][0]["exp_avg"], old_optimizer.state_dict()["state"][0]["exp_avg"])
 
 
-def test_return_scale_rank_is_the_share_of_finished_transitions_that_scored_no_higher():
-    self_buffer = ReplayBuffer(obs_dim=1, act_dim=1, capacity=100)
-    for length, episodic_return in ((10, 5.0), (30, -900.0), (20, 6.0), (5, float("nan"))):  # the last one runs
-        start = self_buffer.ptr
-        for _ in range(length):
-            self_buffer.add(np.zeros(1), np.zeros(1), 0.0, np.zeros(1), 0.0)
-        if episodic_return == episodic_return:
-            self_buffer.end_episode(start, episodic_return)
-    ranked = self_buffer.sorted_episode_returns()
-    assert ranked.tolist() == sorted([5.0] * 10 + [-900.0] * 30 + [6.0] * 20)
-    returns = torch.tensor([-900.0, 5.0, 6.0, 7.0, -1000.0])
-    assert scale_returns(returns, "rank", None, ranked).tolist() == pytest.approx([0.5, 40 / 60, 1.0, 1.0, 0.0])
-    # minmax: one very bad episode squeezes the good ones together; rank keeps them apart
-    minmax = scale_returns(returns, "minmax", (-900.0, 6.0), None)
-    assert float(minmax[2] - minmax[1]) == pytest.approx(1 / 906, abs=1e-6)
-
-
-def test_deploy_target_changes_what_is_scored_and_saved_not_what_is_learned(tmp_path, poor_hopper_demos, capsys):
-    common = ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--output-dir", str(tmp_path), "--save-model",
-              "--hidden", "32", "32", "--disc-hidden", "32", "32", "--threads", "1", "--eval-episodes", "1",
-              "--total-timesteps", "1600", "--learning-starts", "1000", "--eval-freq", "400", "--disc-freq", "200",
-              "--checkpoint-freq", "400", "--kernels", "torch"]
-    procs = run_scripts(*[("sail.py", *common, "--run-name", deploy, "--deploy", deploy)
-                          for deploy in ("actor", "target")])
-    assert all(proc.returncode == 0 for proc in procs), procs[-1].stderr[-3000:]
-    actor_rows, target_rows = read_csv(tmp_path / "actor"), read_csv(tmp_path / "target")
-    timing = {"time", "steps_per_second", "eval_return", "eval_return_std", "eval_length"}
-    assert [{k: v for k, v in r.items() if k not in timing} for r in actor_rows] == \
-           [{k: v for k, v in r.items() if k not in timing} for r in target_rows]  # the same learning
-    assert all(r["eval_return"] == r["eval_return_target"] for r in target_rows)
-    assert any(r["eval_return_target"] != r["eval_return_actor"] for r in target_rows)  # two policies after updates
-    checkpoint = torch.load(tmp_path / "target" / "checkpoint.pt", weights_only=True)
-    model = torch.load(tmp_path / "target" / "model.pt", weights_only=True)
-    assert all(torch.equal(model["actor"][k], checkpoint["agent"]["actor_target"][k]) for k in model["actor"])
-    # --evaluate plays the run's own choice, or the one --deploy names (the other from checkpoint.pt)
-    import sail
-
-    def evaluated(run, *flags):
-        capsys.readouterr()
-        assert sail.main(["--evaluate", str(tmp_path / run), "--eval-episodes", "1", "--threads", "1", *flags]) == 0
-        return capsys.readouterr().out.splitlines()[-1]
-    scores = lambda line: line.split(": mean")[1]  # noqa: E731 (the returns, not the file they came from)
-    target_run = evaluated("target")
-    assert "model.pt" in target_run and scores(target_run) == scores(evaluated("actor", "--deploy", "target"))
-    actor_of_target_run = evaluated("target", "--deploy", "actor")
-    assert "checkpoint.pt" in actor_of_target_run and scores(actor_of_target_run) == scores(evaluated("actor"))
-
-
 @pytest.fixture(scope="module")
 def smoke_runs(tmp_path_factory, poor_hopper_demos):
-    """Every SMOKE run, as many at a time as there are cores: {name: (process, run folder)}."""
+    """Every SMOKE run, as many at a time as there are cores: {name: (process, run folder)}. The demo file and
+    the output folder are given as paths relative to the scripts' folder, where they run."""
     out = tmp_path_factory.mktemp("smoke")
     commands = []
     for name, flags in SMOKE.items():
-        common = ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--num-demos", "1", "--output-dir", str(out),
-                  "--run-name", name, "--save-model", "--hidden", "32", "32", "--threads", "1", "--eval-episodes", "1"]
+        common = ["--env", "Hopper-v5", "--demos", os.path.relpath(poor_hopper_demos, HERE), "--num-demos", "1",
+                  "--output-dir", os.path.relpath(out, HERE), "--run-name", name, "--hidden", "32", "32",
+                  "--threads", "1", "--eval-episodes", "1"]
         commands.append(("bc.py", *common, *flags) if name == "bc" else
-                        ("sail.py", *common, "--total-timesteps", "1200", "--learning-starts", "800",
-                         "--eval-freq", "400", "--disc-freq", "200", "--disc-hidden", "32", "32", *flags))
+                        ("sail.py", *common, "--total-timesteps", "600", "--learning-starts", "400",
+                         "--eval-freq", "200", "--disc-freq", "200", "--disc-hidden", "32", "32", *flags))
     procs = run_scripts(*commands, at_once=max(2, os.cpu_count() or 2))
     return {name: (proc, out / name) for name, proc in zip(SMOKE, procs)}
 
 
-def test_on_policy_disc_from_the_first_promotion(smoke_runs):
-    """--on-policy-from promotion: the whole-R_B D of the paper's SAIL while R_E holds only the
-    teacher, the on-policy D once an own episode has joined it (here before learning starts)."""
+def test_on_policy_disc_from_the_first_promotion(smoke_runs, capsys):
+    """--disc-negatives recent-after-promotion (the default): the whole-R_B D of the paper's SAIL while R_E
+    holds only the teacher, the on-policy D once an own episode has joined it (here before learning starts)."""
     def learning(name):
         proc, run_dir = smoke_runs[name]
         assert proc.returncode == 0, proc.stderr[-3000:]
         return [{k: v for k, v in r.items() if k not in ("time", "steps_per_second")} for r in read_csv(run_dir)]
-    promoted = learning("on-policy-from-promotion")
+    promoted = learning("sail")
     assert int(promoted[0]["promotions"]) > 0
-    assert promoted == learning("on-policy-disc")
-    assert learning("on-policy-from-promotion-no-adaptation") == learning("no-adaptation")
-    assert learning("no-adaptation") != learning("on-policy-disc")
-    proc = run_script("sail.py", "--no-on-policy-disc", "--on-policy-from", "promotion", "--total-timesteps", "10")
-    assert_one_line_error(proc)
-    assert "--on-policy-from promotion goes with --on-policy-disc" in proc.stderr
+    assert promoted == learning("recent-negatives")
+    assert learning("recent-after-promotion-no-adaptation") == learning("no-adaptation")
+    assert learning("no-adaptation") != learning("recent-negatives")
+    # the flags that --disc-negatives merged are gone: one line
+    for argv in (["--no-on-policy-disc"], ["--on-policy-from", "promotion"], ["--disc-negatives", "promotion"]):
+        proc = main_in_process(sail.main, argv, capsys)
+        assert_one_line_error(proc)
+        assert proc.returncode == 2 and argv[0] in proc.stderr
 
 
 @pytest.mark.parametrize("name", sorted(SMOKE))
@@ -1268,33 +1061,52 @@ def test_smoke_run_of_each_preset_and_ablation(name, smoke_runs):
     proc, run_dir = smoke_runs[name]
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = read_csv(run_dir)
-    assert list(rows[0]) == CSV_COLUMNS
+    assert list(rows[0]) == PROGRESS_COLUMNS  # the actor's evaluation only: no target-actor columns
     assert all(np.isfinite(float(r["eval_return"])) for r in rows)
     assert all(1 <= float(r["eval_length"]) < 1000 for r in rows)  # an untrained hopper falls
-    if name != "bc":  # before the first update the target actor is the actor: same start states, same return
-        assert all(r["eval_return"] == r["eval_return_actor"] for r in rows)
-        assert all(r["eval_return_target"] == r["eval_return"] for r in rows if int(r["global_step"]) < 800)
-    model = torch.load(run_dir / "model.pt", weights_only=True)
+    model = torch.load(run_dir / "model.pt", weights_only=True)  # every run writes it at its end
     assert set(model["actor"]) and model["env"] == "Hopper-v5"
     config = json.load(open(run_dir / "config.json"))
+    # what the run is and the code that ran it, and no folder of this machine
+    text = (run_dir / "config.json").read_text()
+    assert HERE not in text and not {"given", "output_dir", "resume"} & set(config)
+    assert not [word for value in config.values() if isinstance(value, str) for word in value.split()
+                if os.path.isabs(word)], config
+    assert re.fullmatch(r"[0-9a-f]{7,40}(-dirty)?", config["commit"])
     if name == "bc":
-        assert "bc.py" in config["command"] and config["algo"] == "bc"
+        assert "bc.py" in config["command"] and config["algo"] == "bc" and config["method"] == "BC"
         assert [int(r["updates"]) for r in rows] == [100, 200, 300]
         return
-    assert "sail.py" in config["command"] and config["total_timesteps"] == 1200
-    assert [int(r["global_step"]) for r in rows] == [400, 800, 1200]
-    assert int(rows[-1]["updates"]) == (2 * 401 if name == "utd2" else 401)  # --utd 2 there
+    # the preset's name, and the learner flags given by hand (not those of how the run is set up)
+    preset = {"sail-paper": "SAIL-paper", "dac": "DAC", "td3": "TD3 (sparse)", "ircr": "IRCR"}.get(name, "SAIL")
+    if name == "rrd":  # --method NAME
+        assert config["method"] == "RRD (K 16)"
+    else:
+        assert config["method"].startswith(preset + " (--") and "--learning-starts 400" in config["method"]
+        assert not any(flag in config["method"] for flag in ("--kernels", "--seed", "--output-dir", "--demos"))
+    assert ("--fixed-alpha" in config["method"]) == (name == "fixed-alpha")
+    assert ("--alpha 0" in config["method"]) == (name == "no-lfd")
+    assert "sail.py" in config["command"] and config["total_timesteps"] == 600
+    assert [int(r["global_step"]) for r in rows] == [200, 400, 600]
+    assert int(rows[-1]["updates"]) == 201
     alphas = [float(r["alpha"]) for r in rows]
     if name in ("no-lfd", "dac", "td3", "ircr", "rrd"):
         assert alphas == [0.0] * 3
     if name == "fixed-alpha":
         assert alphas == [0.5] * 3
-    if name in ("no-adaptation", "on-policy-from-promotion-no-adaptation", "dac", "td3", "ircr", "rrd"):
+    if name in ("no-adaptation", "recent-after-promotion-no-adaptation", "dac", "td3", "ircr", "rrd"):
         assert all(int(r["promotions"]) == 0 for r in rows)
     if name not in ("sail-paper", "dac", "td3", "ircr"):  # the reward model trains with every TD3 update
-        assert all(np.isfinite(float(r["decomposition_loss"])) for r in rows if int(r["global_step"]) >= 800)
+        assert all(np.isfinite(float(r["decomposition_loss"])) for r in rows if int(r["global_step"]) >= 400)
     else:
         assert all(r["decomposition_loss"] == "nan" for r in rows)
+    # the learned action cost c: a default of the decomposition (RRD's preset keeps the plain reward model)
+    costs = [float(r["decomposition_action_cost"]) for r in rows if int(r["global_step"]) >= 400]
+    if name not in ("sail-paper", "dac", "td3", "ircr", "rrd"):
+        assert config["action_cost"] == ("reward" if name == "decomposition" else "reward-and-actor")
+        assert all(np.isfinite(c) and c > 0 for c in costs)
+    else:
+        assert config["action_cost"] == "none" and all(np.isnan(c) for c in costs)
     if name in ("td3", "ircr", "rrd"):  # no discriminator trained
         assert all(r["disc_loss"] == "nan" for r in rows)
     else:
@@ -1327,9 +1139,10 @@ def test_warm_up_waits_for_episodic_returns_where_the_critic_reward_needs_them(t
 def test_promotion_switches_alpha_inside_the_loop(tmp_path, poor_hopper_demos):
     """The poor teacher's return is the lowest of 30 random episodes: the agent's own episodes
     beat it, are promoted, and the dynamic alpha drops from 0.5 to 0 at the first promotion. The
-    small teacher capacity makes the worst episodes leave, so the threshold rises."""
+    small teacher capacity makes the worst episodes leave, so the threshold rises. (--update-every 2000: no
+    TD3 update in the 1000 steps, which only R_E's promotions and alpha are about.)"""
     proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "1000",
-                      "--learning-starts", "1", "--eval-freq", "20", "--disc-freq", "200", "--update-every", "1000",
+                      "--learning-starts", "1", "--eval-freq", "20", "--disc-freq", "200", "--update-every", "2000",
                       "--teacher-capacity", "200", "--output-dir", str(tmp_path), "--run-name", "run", *TINY)
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = read_csv(tmp_path / "run")
@@ -1342,27 +1155,32 @@ def test_promotion_switches_alpha_inside_the_loop(tmp_path, poor_hopper_demos):
 
 # fixed kernels: `auto` times them in each process and may choose differently in two runs
 RESUME_FLAGS = ["--env", "Hopper-v5", "--learning-starts", "500", "--eval-freq", "250", "--disc-freq", "100",
-                "--seed", "3", "--save-model", "--kernels", "onednn" if cpu_kernels.AVAILABLE else "torch", *TINY]
+                "--seed", "3", "--kernels", "onednn" if cpu_kernels.AVAILABLE else "torch", *TINY]
 
 
 @pytest.fixture(scope="module")
-def straight_run(tmp_path_factory, poor_hopper_demos):
-    """A run of 1000 steps, never interrupted: what every interrupted and resumed one must equal."""
+def straight_runs(tmp_path_factory, poor_hopper_demos):
+    """Side by side: a run of 1000 steps with sail.py's defaults, never interrupted (what every interrupted
+    and resumed one must equal); the same run of the paper's SAIL (no return decomposition, plain critics);
+    and the first run stopped at step 700, which test_resume_equals_an_uninterrupted_run resumes."""
     out = tmp_path_factory.mktemp("straight")
-    proc = run_script("sail.py", *RESUME_FLAGS, "--demos", poor_hopper_demos, "--total-timesteps", "1000",
-                      "--output-dir", str(out), "--run-name", "a")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return out / "a"
+    flags = [*RESUME_FLAGS, "--demos", poor_hopper_demos, "--output-dir", str(out)]
+    procs = run_scripts(("sail.py", *flags, "--total-timesteps", "1000", "--run-name", "a"),
+                        ("sail.py", *flags, "--algo", "sail-paper", "--total-timesteps", "1000", "--run-name", "paper"),
+                        ("sail.py", *flags, "--total-timesteps", "700", "--run-name", "stopped"))
+    for proc in procs:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return {"straight": out / "a", "paper": out / "paper", "stopped": out / "stopped"}
 
 
 @pytest.fixture(scope="module")
-def straight_paper_run(tmp_path_factory, poor_hopper_demos):
-    """The same run of the paper's SAIL: no return decomposition, plain critics."""
-    out = tmp_path_factory.mktemp("straight_paper")
-    proc = run_script("sail.py", *RESUME_FLAGS, "--algo", "sail-paper", "--demos", poor_hopper_demos,
-                      "--total-timesteps", "1000", "--output-dir", str(out), "--run-name", "a")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return out / "a"
+def straight_run(straight_runs):
+    return straight_runs["straight"]
+
+
+@pytest.fixture(scope="module")
+def straight_paper_run(straight_runs):
+    return straight_runs["paper"]
 
 
 def assert_same_run(run_a, run_b):
@@ -1377,67 +1195,25 @@ def assert_same_run(run_a, run_b):
             torch.testing.assert_close(value, model_b[key][name], rtol=0, atol=0)
 
 
-def test_resume_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos, straight_run):
-    # stopped just after D's training at step 700: the evaluation at 750 logs that training's losses
-    first = run_script("sail.py", *RESUME_FLAGS, "--demos", poor_hopper_demos, "--total-timesteps", "700",
-                       "--output-dir", str(tmp_path), "--run-name", "b")
-    assert first.returncode == 0, first.stderr[-3000:]
+def test_resume_equals_an_uninterrupted_run(straight_runs):
+    """With sail.py's defaults: D, the agent, the reward model of the return decomposition with its learned
+    action cost, their optimizers and the buffer's episode bounds (stopped mid-episode) are in the checkpoint."""
+    # the run stopped just after D's training at step 700: the evaluation at 750 logs that training's losses
+    stopped = straight_runs["stopped"]
     # same thread count: with another one, MKL and oneDNN may sum in another order (seen on Intel)
-    resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1000")
+    resumed = run_script("sail.py", "--resume", str(stopped), "--total-timesteps", "1000")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert_same_run(straight_run, tmp_path / "b")
-
-
-def return_decomposition_flags(poor_hopper_demos, out):
-    return [*RESUME_FLAGS, "--demos", poor_hopper_demos, "--return-decomposition", "1", "--decomposition-subset", "16",
-            "--decomposition-action-cost", "--noise-beta", "1", "--output-dir", str(out)]
-
-
-@pytest.fixture(scope="module")
-def straight_decomposition_run(tmp_path_factory, poor_hopper_demos):
-    """A --return-decomposition run of 1000 steps, never interrupted."""
-    out = tmp_path_factory.mktemp("straight_rrd")
-    proc = run_script("sail.py", *return_decomposition_flags(poor_hopper_demos, out), "--total-timesteps", "1000",
-                      "--run-name", "a")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return out / "a"
-
-
-def test_resume_with_return_decomposition_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos,
-                                                                      straight_decomposition_run):
-    """The reward model (with its learned action cost), its optimizer, the buffer's episode bounds and
-    the current episode's colored exploration noise (stopped mid-episode) are in the checkpoint."""
-    first = run_script("sail.py", *return_decomposition_flags(poor_hopper_demos, tmp_path), "--total-timesteps", "700",
-                       "--run-name", "b")
-    assert first.returncode == 0, first.stderr[-3000:]
-    resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1000")
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert_same_run(straight_decomposition_run, tmp_path / "b")
+    assert_same_run(straight_runs["straight"], stopped)
     assert all(np.isfinite(float(r["decomposition_loss"])) and np.isfinite(float(r["decomposition_action_cost"]))
-               for r in read_csv(tmp_path / "b")[2:])  # c logged
+               for r in read_csv(stopped)[2:])  # c logged
 
 
-def test_resume_with_rank_scaled_returns_in_a_wrapped_buffer_equals_an_uninterrupted_run(tmp_path, poor_hopper_demos):
-    """--return-scale rank ranks against R_B's returns as of the last episode's end; once R_B wraps,
-    steps overwritten since then still count, so the checkpoint keeps that ranking rather than
-    a resumed run rebuilding it from the buffer."""
-    flags = [*RESUME_FLAGS, "--demos", poor_hopper_demos, "--return-scale", "rank", "--buffer-size", "1001",
-             "--eval-freq", "400", "--output-dir", str(tmp_path)]
-    straight, first = run_scripts(("sail.py", *flags, "--total-timesteps", "1600", "--run-name", "a"),
-                                  ("sail.py", *flags, "--total-timesteps", "1300", "--run-name", "b"), at_once=2)
-    assert straight.returncode == first.returncode == 0, (straight.stderr + first.stderr)[-3000:]
-    resumed = run_script("sail.py", "--resume", str(tmp_path / "b"), "--total-timesteps", "1600")
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert_same_run(tmp_path / "a", tmp_path / "b")
-
-
-def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(straight_decomposition_run,
-                                                                           straight_paper_run):
+def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(straight_run, straight_paper_run):
     probe = os.path.join("results", "rrd_probe.py")
-    proc, without, bad = run_scripts((probe, str(straight_decomposition_run), "--noise", "0", "0.1", "--refit", "8",
+    proc, without, bad = run_scripts((probe, str(straight_run), "--noise", "0", "0.1", "--refit", "8",
                                       "--refit-steps", "20"),
                                      (probe, str(straight_paper_run)),
-                                     (probe, str(straight_decomposition_run), "--refit", "0"))
+                                     (probe, str(straight_run), "--refit", "0"))
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.splitlines()
     scaling = [f"actions x {k}" for k in (0.0, 0.5, 1.0, 1.5)]
@@ -1462,7 +1238,7 @@ def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_result(tmp_path
     import time
     run_dir = tmp_path / "k"
     command = ["sail.py", *RESUME_FLAGS, "--demos", poor_hopper_demos, "--total-timesteps", "1000",
-               "--checkpoint-freq", "50", "--output-dir", str(tmp_path), "--run-name", "k"]
+               "--output-dir", str(tmp_path), "--run-name", "k"]  # a checkpoint with each evaluation
     kills = 0
     for moment in ("after the first checkpoint", "while a checkpoint is written", "later"):
         proc = start_script(command, os.devnull, os.devnull)  # kill() sends SIGKILL
@@ -1495,9 +1271,9 @@ def test_early_end_probe_on_ant_shows_the_reward_by_steps_to_a_flip_and_the_rest
     """On an Ant-v5 run the probe ends with the critic's reward parts and Q (at the actor's and at the
     zero action) by steps to the first step upside down; --rest-when-upside-down plays the actor that
     rests once upside down, and is refused on other envs with one line."""
-    proc = run_script("sail.py", "--env", "Ant-v5", "--total-timesteps", "1200", "--learning-starts", "300",
-                      "--eval-freq", "1200", "--disc-freq", "100", "--seed", "1", "--checkpoint-freq", "1200",
-                      "--decomposition-action-cost", "--actor-action-cost", *TINY, "--output-dir", str(tmp_path),
+    proc = run_script("sail.py", "--env", "Ant-v5", "--total-timesteps", "1200", "--learning-starts", "1000",
+                      "--eval-freq", "1200", "--disc-freq", "100", "--seed", "1",
+                      "--action-cost", "reward-and-actor", *TINY, "--output-dir", str(tmp_path),
                       "--run-name", "ant")
     assert proc.returncode == 0, proc.stderr[-3000:]
     probe = os.path.join("results", "early_ends.py")
@@ -1548,9 +1324,9 @@ def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     assert missing.returncode == 2 and "has no config.json" in missing.stderr
 
 
-def test_checkpoint_probe_reports_q_slope_and_d(straight_paper_run, straight_decomposition_run):
+def test_checkpoint_probe_reports_q_slope_and_d(straight_paper_run, straight_run):
     probe = os.path.join("results", "probe.py")
-    proc, decomposition = run_scripts((probe, str(straight_paper_run)), (probe, str(straight_decomposition_run)))
+    proc, decomposition = run_scripts((probe, str(straight_paper_run)), (probe, str(straight_run)))
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert decomposition.returncode == 0, decomposition.stderr[-3000:]
     learned = [line for line in decomposition.stdout.splitlines()[-8:] if "transitions" in line]
@@ -1598,20 +1374,20 @@ def test_checkpoints_are_read_onto_the_cpu_whatever_the_run_device(tmp_path, mon
 
 def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, straight_run, capsys):
     import shutil
-    run = shutil.copytree(straight_run, tmp_path / "run")  # with model.pt (--save-model) and checkpoint.pt
-    noisy = ("sail.py", "--evaluate", str(run), "--eval-episodes", "3", "--seed", "7", "--eval-noise", "0.3")
+    run = shutil.copytree(straight_run, tmp_path / "run")  # with model.pt (every run's) and checkpoint.pt
+    noisy = ("evaluate.py", str(run), "--episodes", "3", "--seed", "7", "--noise", "0.3")
     from_model, noisy_a, noisy_b, noise_alone = run_scripts(
-        ("sail.py", "--evaluate", str(run), "--eval-episodes", "3", "--seed", "7"), noisy, noisy,
+        ("evaluate.py", str(run), "--episodes", "3", "--seed", "7"), noisy, noisy,
         ("sail.py", "--env", "Hopper-v5", "--eval-noise", "0.1"))
     # with noise: the actor as it acts in training, reproducible from --seed, and not the deterministic episodes
     assert noisy_a.returncode == 0 and noisy_a.stdout == noisy_b.stdout, noisy_a.stderr[-3000:]
     assert "exploration noise 0.3" in noisy_a.stdout and noisy_a.stdout.splitlines()[:3] != from_model.stdout.splitlines()[:3]
-    assert_one_line_error(noise_alone)  # --eval-noise needs --evaluate
+    assert_one_line_error(noise_alone)  # evaluating is evaluate.py's: sail.py has no --eval-noise
     os.remove(run / "model.pt")  # the final checkpoint holds the same actor
-    reader_gone = subprocess.Popen([sys.executable, "sail.py", "--evaluate", str(run)], cwd=HERE,
+    reader_gone = subprocess.Popen([sys.executable, "evaluate.py", str(run)], cwd=HERE,
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     reader_gone.stdout.close()  # as `| head -1` does after its line
-    from_checkpoint = run_script("sail.py", "--evaluate", str(run), "--eval-episodes", "3", "--seed", "7")
+    from_checkpoint = run_script("evaluate.py", str(run), "--episodes", "3", "--seed", "7")
     assert reader_gone.wait(timeout=120) == 1 and reader_gone.stderr.read() == ""
     for proc in (from_model, from_checkpoint):
         assert proc.returncode == 0, proc.stderr[-3000:]
@@ -1621,18 +1397,17 @@ def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, straig
     assert "checkpoint.pt: mean return" in from_checkpoint.stdout.splitlines()[3]
     config = json.load(open(run / "config.json"))
     json.dump(config | {"hidden": [64, 64]}, open(run / "config.json", "w"))  # not the saved sizes
-    import sail
-    assert_one_line_error(main_in_process(sail.main, ["--evaluate", str(run)], capsys))
+    assert_one_line_error(run_script("evaluate.py", str(run)))
     os.remove(run / "checkpoint.pt")
-    assert_one_line_error(main_in_process(sail.main, ["--evaluate", str(run)], capsys))
+    assert_one_line_error(run_script("evaluate.py", str(run)))
 
 
 def test_evaluate_renders_a_video_headless(tmp_path, straight_run):
     import imageio.v3 as iio
     video = tmp_path / "hopper.gif"
-    proc, *bad = run_scripts(("sail.py", "--evaluate", str(straight_run), "--eval-episodes", "2", "--video", str(video)),
-                             ("sail.py", "--evaluate", str(straight_run), "--video", str(tmp_path / "x.avi")),
-                             ("sail.py", "--env", "Hopper-v5", "--video", str(video)))  # needs --evaluate
+    proc, *bad = run_scripts(("evaluate.py", str(straight_run), "--episodes", "2", "--video", str(video)),
+                             ("evaluate.py", str(straight_run), "--video", str(tmp_path / "x.avi")),
+                             ("sail.py", "--env", "Hopper-v5", "--video", str(video)))  # evaluate.py's flag
     assert proc.returncode == 0, proc.stderr[-3000:]
     lengths = [int(line.split("length ")[1]) for line in proc.stdout.splitlines() if line.startswith("episode")]
     from evaluate import gif_frames
@@ -1682,14 +1457,24 @@ def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos, caps
                  ["--env", "nosuchmodule:Foo-v0", *out],
                  ["--env", "Hopper-v5", "--demos", str(tmp_path), *out],
                  ["--hidden", "0", *out],
-                 ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--no-contact-forces", *out],
-                 ["--eval-freq", "5000", "--total-timesteps", "1000", *out],
-                 ["--action-budget", "teacher", *out],  # without --action-l2: nothing to leave free
+                 ["--eval-freq", "5000", "--total-timesteps", "1000", "--learning-starts", "100", *out],
+                 ["--return-decomposition", "0", "--action-cost", "reward", *out],
                  ["--seed", "-1", *out], ["--seed", str(2**32), *out],  # numpy, gymnasium or torch would refuse it
                  ["--lr", "inf", *out],  # would only show up as a diverged loss
                  ["--threads", "100000", *out],  # torch's thread pools would fail to start: a crash
-                 ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--output-dir", str(blocker / "runs")]):
+                 ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--kernels", "torch",  # (auto: timed first)
+                  "--output-dir", str(blocker / "runs")]):
         assert_one_line_error(main_in_process(sail.main, argv, capsys))
+    # the flags of the experiments that left the code, and the flags merged into others
+    for removed in (["--noise-beta", "1"], ["--n-step", "3"], ["--utd", "2"], ["--bc-weight", "1"],
+                    ["--action-l2", "1"], ["--action-budget", "teacher"], ["--return-scale", "rank"],
+                    ["--alpha-anneal-steps", "100"], ["--no-contact-forces"], ["--deploy", "target"], ["--no-lfd"],
+                    ["--on-policy-disc"], ["--decomposition-action-cost"], ["--actor-action-cost"],
+                    ["--disc-batch-size", "64"], ["--save-model"], ["--checkpoint-freq", "100"],
+                    ["--evaluate", str(tmp_path)], ["--video", "x.gif"], ["--eval-noise", "0.1"]):
+        proc = main_in_process(sail.main, [*removed, *out], capsys)
+        assert_one_line_error(proc)
+        assert "unrecognized arguments: " + removed[0] in proc.stderr
     assert not os.path.exists(tmp_path / "runs")  # nothing was started
 
 
@@ -1741,7 +1526,7 @@ def test_ctrl_c_or_sigterm_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path
     codes = {"SIGINT": 130, "SIGTERM": 143}
     procs = {signame: subprocess.Popen(  # one run per signal, side by side (a 2-core machine)
         [sys.executable, "sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "1000000",
-         "--learning-starts", "200", "--eval-freq", "500", "--output-dir", str(tmp_path), "--run-name", signame, *TINY],
+         "--learning-starts", "400", "--eval-freq", "500", "--output-dir", str(tmp_path), "--run-name", signame, *TINY],
         cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for signame in codes}
     steps = {}
     for signame, proc in procs.items():
@@ -1757,7 +1542,7 @@ def test_ctrl_c_or_sigterm_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path
         assert proc.returncode == codes[signame], err[-3000:]
         assert "Traceback" not in err and "--resume" in out
         rows = read_csv(run_dir)
-        assert rows and list(rows[0]) == CSV_COLUMNS
+        assert rows and list(rows[0]) == PROGRESS_COLUMNS
         loop = torch.load(run_dir / "checkpoint.pt", weights_only=True)["loop"]
         steps[signame] = loop["global_step"]
         assert steps[signame] > int(rows[-1]["global_step"])
@@ -1786,16 +1571,78 @@ def test_ctrl_c_while_the_libraries_load_is_one_line_and_starts_nothing(tmp_path
     assert not (tmp_path / "runs").exists()
 
 
-def test_readme_flag_table_lists_every_sail_py_flag(capsys, monkeypatch):
-    import sail
+def flags_in_help(help_text):
+    """The --flags a script's --help lists (--help aside)."""
+    return set(re.findall(r"(?<![\w-])(--[a-z0-9][a-z0-9-]*[a-z0-9])", help_text)) - {"--help"}
+
+
+def test_every_flag_the_readme_tables_name_exists(capsys, monkeypatch):
+    """README shows the main flags and points to --help for the rest: each flag its tables name is one of
+    sail.py's (or, in a row about another script, one of that script's)."""
     monkeypatch.setenv("COLUMNS", "10000")  # argparse's help on one line per flag
-    help_text = main_in_process(sail.main, ["--help"], capsys).stdout
-    flags = set(re.findall(r"(?<![\w-])(--[a-z0-9][a-z0-9-]*)", help_text)) - {"--help"}
+    sail_flags = flags_in_help(main_in_process(sail.main, ["--help"], capsys).stdout)
+    assert len(sail_flags) > 40
     readme = open(os.path.join(HERE, "README.md")).read()
-    table = readme.split("### Flags")[1].split("\n### ")[0]
-    documented = set(re.findall(r"`(--[a-z0-9-]+)", table))
-    assert len(flags) > 60 and flags - documented == set(), flags - documented
-    assert documented - flags <= {"--bc-steps"}  # bc.py's, named in the table's introduction
+    rows = [line for line in readme.splitlines() if line.startswith("|")]
+    named, scripts = set(), {}
+    for row in rows:
+        flags = {flag.rstrip("-") for flag in re.findall(r"(?<![\w-])(--[a-z0-9][a-z0-9-]*)", row)
+                 if not flag.endswith("-")}  # not `--no-...`
+        known = set(sail_flags)
+        for script in set(re.findall(r"`(\w+\.py)`", row)) - {"sail.py", "test_sail.py"}:
+            if script not in scripts:
+                proc = run_script(script, "--help")
+                assert proc.returncode == 0, proc.stderr[-3000:]
+                scripts[script] = flags_in_help(proc.stdout)
+            known |= scripts[script]
+        assert flags <= known, (row, flags - known)
+        named |= flags
+    assert len(named) >= 10, named  # the tables do name flags
+
+
+def test_sail_py_help_shows_every_flag_with_its_default(capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "10000")
+    help_text = main_in_process(sail.main, ["--help"], capsys).stdout
+    blocks = [block for block in re.split(r"\n(?=  -)", help_text) if block.startswith("  --")]
+    assert len(blocks) > 40 and all("(default: " in block for block in blocks), \
+        [block for block in blocks if "(default: " not in block]
+    for flag, default in (("--gamma", "0.99"), ("--total-timesteps", "1000000"), ("--hidden", "[256, 256]"),
+                          ("--disc-negatives", "recent-after-promotion"), ("--action-cost", "reward-and-actor"),
+                          ("--critic-layer-norm", "True")):
+        block = next(block for block in blocks if block.startswith(f"  {flag} ") or block.startswith(f"  {flag},"))
+        assert f"(default: {default})" in block, block
+
+
+def test_method_names_the_preset_and_the_learner_flags_given_by_hand():
+    """config.json's "method": the preset's name, with the learner flags written on the command line (not
+    those of how the run is set up or stored); --method names it otherwise."""
+    method = lambda *argv: sail.parse_args(list(argv)).method  # noqa: E731
+    assert method() == "SAIL" and method("--algo", "sail-paper") == "SAIL-paper"
+    assert method("--algo", "sail-paper", "--fixed-alpha") == "SAIL-paper (--fixed-alpha)"
+    assert [method("--algo", algo) for algo in ("dac", "td3", "ircr", "rrd")] == ["DAC", "TD3 (sparse)", "IRCR", "RRD"]
+    assert method("--algo", "dac", "--seed", "3", "--threads", "1", "--total-timesteps", "20000", "--output-dir", "x",
+                  "--run-name", "y", "--kernels", "torch", "--eval-episodes", "2", "--num-demos", "4") == "DAC"
+    assert method("--gamma", "0.995", "--no-critic-layer-norm") == "SAIL (--no-critic-layer-norm --gamma 0.995)"
+    assert method("--algo", "sail-paper", "--disc-negatives", "recent") == "SAIL-paper (--disc-negatives recent)"
+    assert method("--algo", "sail-paper", "--fixed-alpha", "--method", "mine") == "mine"
+
+
+def test_no_script_imports_another():
+    """Each script (a top-level file with `if __name__ == "__main__"`) imports only modules, never
+    another script: what a script does stays in it, and a module's change reaches every script alike."""
+    import ast
+    files = [name for name in sorted(os.listdir(HERE)) if name.endswith(".py") and not name.startswith("test_")]
+    scripts = {name[:-3] for name in files
+               if re.search(r"""^if __name__ == ["']__main__["']:""", open(os.path.join(HERE, name)).read(), re.M)}
+    assert {"sail", "evaluate", "bc", "gail", "make_demos", "bench", "plot"} <= scripts
+    for name in files:
+        imported = set()
+        for node in ast.walk(ast.parse(open(os.path.join(HERE, name)).read())):
+            if isinstance(node, ast.Import):
+                imported |= {alias.name.split(".")[0] for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0:
+                imported.add(node.module.split(".")[0])
+        assert not imported & (scripts - {name[:-3]}), (name, imported & scripts)
 
 
 def test_a_refused_resume_leaves_the_run_folder_as_it_was(tmp_path, straight_run, capsys):
@@ -1818,33 +1665,31 @@ def test_resume_takes_flags_given_with_their_default_values(tmp_path):
     import sail
     run = tmp_path / "run"
     run.mkdir()
-    saved = vars(sail.parse_args(["--total-timesteps", "600", "--eval-freq", "200", "--threads", "1"]))
+    saved = vars(sail.parse_args(["--total-timesteps", "600", "--learning-starts", "100", "--eval-freq", "200",
+                                  "--threads", "1"]))
     (run / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k != "given"}))
     (run / "checkpoint.pt").write_bytes(b"")
     args = sail.parse_args(["--resume", str(run), "--total-timesteps", "1000000", "--threads", "2"])
     assert args.given == {"resume", "total_timesteps", "threads"}
-    resumed = plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE)
+    resumed = plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py")
     assert (resumed.total_timesteps, resumed.threads, resumed.eval_freq) == (1_000_000, 2, 200)
     plumbing.record_resume(str(run), resumed, 600, sail.RESUMABLE)  # once the checkpoint has loaded
     config = json.loads((run / "config.json").read_text())  # the run folder says so
     assert (config["total_timesteps"], config["threads"], config["eval_freq"]) == (1_000_000, 2, 200)
 
 
-def test_resuming_a_run_saved_before_the_return_bonus_keeps_it_off(tmp_path):
+def test_a_resumed_run_keeps_its_saved_flags_over_todays_defaults(tmp_path):
     import plumbing
-    import sail
     run = tmp_path / "run"
     run.mkdir()
-    saved = vars(sail.parse_args(["--total-timesteps", "600", "--eval-freq", "200"]))
-    old = {k: v for k, v in saved.items() if k not in ("given", "return_bonus", "return_scale")}
-    (run / "config.json").write_text(json.dumps(old))
+    saved = vars(sail.parse_args(["--total-timesteps", "600", "--learning-starts", "100", "--eval-freq", "200"]))
+    (run / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k != "given"} |
+                                                {"return_bonus": 2.0, "action_cost": "reward"}))
     (run / "checkpoint.pt").write_bytes(b"")
     args = sail.parse_args(["--resume", str(run)])
-    assert args.return_bonus == 1.0  # today's default
-    resumed = plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, sail.PREDATING)
-    assert (resumed.return_bonus, resumed.return_scale) == (0.0, "minmax")
-    (run / "config.json").write_text(json.dumps(old | {"return_bonus": 2.0}))
-    assert plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, sail.PREDATING).return_bonus == 2.0
+    assert (args.return_bonus, args.action_cost) == (1.0, "reward-and-actor")  # today's defaults
+    resumed = plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py")
+    assert (resumed.return_bonus, resumed.action_cost, resumed.total_timesteps) == (2.0, "reward", 600)
 
 
 def test_loading_refuses_a_file_that_would_run_code(tmp_path, poor_hopper_demos, straight_run):
@@ -1861,7 +1706,7 @@ def test_loading_refuses_a_file_that_would_run_code(tmp_path, poor_hopper_demos,
     shutil.copytree(straight_run, run)
     for name in ("checkpoint.pt", "model.pt"):
         torch.save({"loop": Payload(), "actor": Payload()}, run / name)
-    for proc in run_scripts(("sail.py", "--resume", str(run)), ("sail.py", "--evaluate", str(run))):
+    for proc in run_scripts(("sail.py", "--resume", str(run)), ("evaluate.py", str(run))):
         assert_one_line_error(proc)
     assert not marker.exists()
 
@@ -1869,7 +1714,7 @@ def test_loading_refuses_a_file_that_would_run_code(tmp_path, poor_hopper_demos,
 def test_a_diverging_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path, poor_hopper_demos):
     """--lr 1e12 makes the critic's weights explode within a few updates."""
     proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "5000",
-                      "--learning-starts", "300", "--eval-freq", "100", "--checkpoint-freq", "100", "--lr", "1e12",
+                      "--learning-starts", "300", "--eval-freq", "100", "--lr", "1e12",
                       "--output-dir", str(tmp_path), "--run-name", "run", *TINY)
     assert_one_line_error(proc)
     assert "non-finite loss" in proc.stderr
@@ -1886,34 +1731,33 @@ DEFAULT_CONFIG = {k: v for k, v in vars(sail.parse_args([])).items() if k != "gi
 
 def test_sail_paper_is_the_defaults_with_each_addition_turned_off_and_the_baselines_keep_the_plain_learner():
     # (--return-decomposition 0 also turns off the learned action cost, which is part of it)
-    additions_off = ["--return-bonus", "0", "--return-decomposition", "0", "--no-critic-layer-norm", "--no-on-policy-disc",
-                     "--no-disc-action-norm"]
+    additions_off = ["--return-bonus", "0", "--return-decomposition", "0", "--no-critic-layer-norm",
+                     "--disc-negatives", "all", "--no-disc-action-norm"]
     paper, off = vars(sail.parse_args(["--algo", "sail-paper"])), vars(sail.parse_args(additions_off))
-    # what still differs is the preset's name and two flags that mean nothing with their addition off
-    assert {k for k in paper if k != "given" and paper[k] != off[k]} == {"algo", "on_policy_from", "decomposition_unit"}
-    assert (DEFAULT_CONFIG["return_bonus"], DEFAULT_CONFIG["return_decomposition"]) == (1.0, 1.0)
+    # what still differs is the preset and its name, and a flag that means nothing with its addition off
+    assert {k for k in paper if k != "given" and paper[k] != off[k]} == {"algo", "method", "decomposition_unit"}
+    defaults = sail.parse_args([])
+    assert (defaults.return_bonus, defaults.return_decomposition) == (1.0, 1.0)
     for algo in ("dac", "td3", "ircr", "rrd"):
         args = sail.parse_args(["--algo", algo])
-        assert not (args.critic_layer_norm or args.on_policy_disc or args.disc_action_norm), algo
+        assert not (args.critic_layer_norm or args.disc_action_norm) and args.disc_negatives == "all", algo
         assert args.return_decomposition == (1.0 if algo == "rrd" else 0.0) and args.decomposition_unit == "range"
-        assert not (args.decomposition_action_cost or args.actor_action_cost), algo
+        assert args.action_cost == "none" and args.alpha == 0.0, algo
 
 
 def test_the_learned_action_cost_is_a_default_that_turns_off_with_what_it_needs_unless_asked_for(capsys):
-    """The pair is on by default; with the decomposition (or the reward's cost) off, a default that has nothing
+    """--action-cost reward-and-actor by default; with the decomposition off, a default that has nothing
     to act on turns off with it, while the same flag given by name is one error line."""
-    assert DEFAULT_CONFIG["decomposition_action_cost"] and DEFAULT_CONFIG["actor_action_cost"]
-    args = sail.parse_args(["--return-decomposition", "0"])
-    assert not (args.decomposition_action_cost or args.actor_action_cost)
-    args = sail.parse_args(["--no-decomposition-action-cost"])
-    assert not args.decomposition_action_cost and not args.actor_action_cost
-    args = sail.parse_args(["--no-actor-action-cost"])
-    assert args.decomposition_action_cost and not args.actor_action_cost
-    for argv, needs in ((["--return-decomposition", "0", "--decomposition-action-cost"], "--return-decomposition > 0"),
-                        (["--no-decomposition-action-cost", "--actor-action-cost"], "needs --decomposition-action-cost")):
+    assert sail.parse_args([]).action_cost == "reward-and-actor"
+    assert sail.parse_args(["--return-decomposition", "0"]).action_cost == "none"
+    assert sail.parse_args(["--algo", "sail-paper", "--return-decomposition", "1"]).action_cost == "none"  # the preset's
+    assert sail.parse_args(["--action-cost", "reward"]).action_cost == "reward"
+    assert sail.parse_args(["--return-decomposition", "0", "--action-cost", "none"]).action_cost == "none"
+    for cost in ("reward", "reward-and-actor"):  # given by name, even with its default value
         with pytest.raises(SystemExit) as exit_info:
-            sail.parse_args(argv)
-        assert exit_info.value.code == 2 and needs in capsys.readouterr().err
+            sail.parse_args(["--return-decomposition", "0", "--action-cost", cost])
+        err = capsys.readouterr().err
+        assert exit_info.value.code == 2 and "needs --return-decomposition" in err and len(err.splitlines()) == 1
 
 
 def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_path, capsys):
@@ -2045,9 +1889,10 @@ def test_gail_and_pofd_smoke_runs_write_the_csv_and_resume_exactly(tmp_path, poo
     import gail
     for algo in flags:
         rows = read_csv(tmp_path / algo / "a")
-        assert list(rows[0]) == CSV_COLUMNS and [int(r["global_step"]) for r in rows] == [1000, 2000, 3000]
+        assert list(rows[0]) == PROGRESS_COLUMNS and [int(r["global_step"]) for r in rows] == [1000, 2000, 3000]
         assert all(np.isfinite(float(r["eval_return"])) and 0 < float(r["disc_teacher"]) < 1 for r in rows)
-        assert json.load(open(tmp_path / algo / "a" / "config.json"))["algo"] == algo
+        config = json.load(open(tmp_path / algo / "a" / "config.json"))
+        assert config["algo"] == algo and config["method"] == {"gail": "GAIL", "pofd": "POfD"}[algo]
         drop = ("steps_per_second", "time")
         assert ([{k: v for k, v in r.items() if k not in drop} for r in rows]
                 == [{k: v for k, v in r.items() if k not in drop} for r in read_csv(tmp_path / algo / "b")])
@@ -2082,7 +1927,7 @@ def test_gail_imitates_a_good_teacher_on_a_small_task(tmp_path):
 def test_tensorboard_logs_the_csv_numbers(tmp_path, poor_hopper_demos):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
     proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "800",
-                      "--learning-starts", "300", "--eval-freq", "400", "--disc-freq", "100", "--tensorboard",
+                      "--learning-starts", "700", "--eval-freq", "400", "--disc-freq", "100", "--tensorboard",
                       "--output-dir", str(tmp_path), "--run-name", "run", *TINY)
     assert proc.returncode == 0, proc.stderr[-3000:]
     events = EventAccumulator(str(tmp_path / "run"))
