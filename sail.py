@@ -103,7 +103,7 @@ def parse_args(argv=None):
     g.add_argument("--hidden", type=pos, nargs="+", default=[256, 256], help="actor/critic hidden sizes")
     g.add_argument("--lr", type=plumbing.positive_float, default=3e-4, help="Adam learning rate of actor and critic")
     g.add_argument("--gamma", type=plumbing.unit_interval, default=0.99, help="discount")
-    g.add_argument("--tau", type=plumbing.unit_interval, default=0.005, help="Polyak averaging rate of the target networks")
+    g.add_argument("--tau", type=plumbing.unit_interval, default=0.005, help="Polyak averaging rate of target networks")
     g.add_argument("--batch-size", type=pos, default=256, help="TD3 batch; also R_E's and R_B's part of D's")
     g.add_argument("--policy-noise", type=nonneg, default=0.2, help="target policy smoothing noise std")
     g.add_argument("--noise-clip", type=nonneg, default=0.5, help="target policy smoothing noise clip")
@@ -318,70 +318,71 @@ def train(args):
             print(f"teacher: {plumbing.count(teacher_buffer.num_episodes, 'episode')}, "
                   f"return {np.mean(teacher_buffer.returns):.1f}", flush=True)
         log = plumbing.ProgressLog(run_dir, plumbing.PROGRESS_COLUMNS, s.rows, args.tensorboard)
-        bar = plumbing.progress_bar(args.total_timesteps, s.global_step, f"{args.algo} {args.env}", args.learning_starts,
-                                    s.rows[-1] if s.rows else None)
+        bar = plumbing.progress_bar(args.total_timesteps, s.global_step, f"{args.algo} {args.env}",
+                                    args.learning_starts, s.rows[-1] if s.rows else None)
         clock, last_row = time.perf_counter(), (s.global_step, s.train_time)
-        while s.global_step < args.total_timesteps and not stop.requested:
-            s.global_step += 1
+        with bar:  # closed however the loop ends, an error too
+            while s.global_step < args.total_timesteps and not stop.requested:
+                s.global_step += 1
 
-            # 1. act: uniformly random while R_B is initialised, then the actor plus Gaussian noise
-            action = (agent.explore(obs, args.exploration_noise, rng) if learning(s.global_step - 1)
-                      else env.action_space.sample())
-            if args.absorbing and obs[-1] == 1.0:  # the absorbing state: a zero action, as in the demos
-                action = np.zeros_like(action)
-            next_obs, reward, terminated, truncated, info = env.step(action)
-            self_buffer.add(obs, action, reward, next_obs, terminated)
-            obs = next_obs
+                # 1. act: uniformly random while R_B is initialised, then the actor plus Gaussian noise
+                action = (agent.explore(obs, args.exploration_noise, rng) if learning(s.global_step - 1)
+                          else env.action_space.sample())
+                if args.absorbing and obs[-1] == 1.0:  # the absorbing state: a zero action, as in the demos
+                    action = np.zeros_like(action)
+                next_obs, reward, terminated, truncated, info = env.step(action)
+                self_buffer.add(obs, action, reward, next_obs, terminated)
+                obs = next_obs
 
-            # 2. adaptive teacher buffer: an episode better than the worst in R_E joins it whole; alpha -> 0
-            if terminated or truncated:
-                s.train_episodic_return = float(info["episode"]["r"])
-                length = (self_buffer.ptr - s.episode_start) % args.buffer_size
-                self_buffer.end_episode(s.episode_start, s.train_episodic_return)
-                s.record_return(s.train_episodic_return, length or args.buffer_size)
-                if not args.no_adaptation and teacher_buffer.promote(s.train_episodic_return,
-                                                                     *self_buffer.latest(length)):
-                    s.promotions += 1
-                    s.first_promotion_step = s.first_promotion_step or s.global_step
-                    s.alpha = s.alpha if args.fixed_alpha else 0.0
-                obs, _ = env.reset()
-                s.episode_start = self_buffer.ptr
+                # 2. adaptive teacher buffer: an episode better than the worst in R_E joins it whole; alpha -> 0
+                if terminated or truncated:
+                    s.train_episodic_return = float(info["episode"]["r"])
+                    length = (self_buffer.ptr - s.episode_start) % args.buffer_size
+                    self_buffer.end_episode(s.episode_start, s.train_episodic_return)
+                    s.record_return(s.train_episodic_return, length or args.buffer_size)
+                    if not args.no_adaptation and teacher_buffer.promote(s.train_episodic_return,
+                                                                         *self_buffer.latest(length)):
+                        s.promotions += 1
+                        s.first_promotion_step = s.first_promotion_step or s.global_step
+                        s.alpha = s.alpha if args.fixed_alpha else 0.0
+                    obs, _ = env.reset()
+                    s.episode_start = self_buffer.ptr
 
-            if learning(s.global_step):
-                # 3. discriminator, Eq. (4): R_E against all of R_B (off-policy) or against its recent steps
-                if use_demos and (not was_learning or (s.global_step - args.learning_starts) % args.disc_freq == 0):
-                    recent = args.disc_negatives == "recent" or (args.disc_negatives == "recent-after-promotion"
-                                                                 and s.first_promotion_step is not None)
-                    stats.update(train_discriminator(
-                        disc, parts["disc_optimizer"], teacher_buffer, self_buffer, args.disc_steps, args.batch_size,
-                        args.entropy_coef, args.grad_penalty, args.on_policy_window if recent else None))
-                was_learning = True
+                if learning(s.global_step):
+                    # 3. discriminator, Eq. (4): R_E against all of R_B (off-policy) or against its recent steps
+                    if use_demos and (not was_learning or (s.global_step - args.learning_starts) % args.disc_freq == 0):
+                        recent = args.disc_negatives == "recent" or (args.disc_negatives == "recent-after-promotion"
+                                                                     and s.first_promotion_step is not None)
+                        stats.update(train_discriminator(
+                            disc, parts["disc_optimizer"], teacher_buffer, self_buffer, args.disc_steps,
+                            args.batch_size, args.entropy_coef, args.grad_penalty,
+                            args.on_policy_window if recent else None))
+                    was_learning = True
 
-                # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)
-                if s.global_step % args.update_every == 0:
-                    unit = decomposition_unit(args.decomposition_unit, s.return_range, s.rate_range,
-                                              env.max_episode_steps)
-                    for _ in range(args.update_every):
-                        stats.update(update(parts, s, args, unit))
-                    # stop before a diverged actor acts in the env; the last checkpoint stays good
-                    plumbing.check_finite(stats, f"at step {s.global_step}", run_dir)
+                    # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)
+                    if s.global_step % args.update_every == 0:
+                        unit = decomposition_unit(args.decomposition_unit, s.return_range, s.rate_range,
+                                                  env.max_episode_steps)
+                        for _ in range(args.update_every):
+                            stats.update(update(parts, s, args, unit))
+                        # stop before a diverged actor acts in the env; the last checkpoint stays good
+                        plumbing.check_finite(stats, f"at step {s.global_step}", run_dir)
 
-            # 5. evaluation of the deterministic policy, the CSV row and a checkpoint
-            if s.global_step % args.eval_freq == 0:
-                count_time()
-                row = {"global_step": s.global_step, **evaluate_policy(eval_env, agent.act, args.eval_episodes),
-                       "train_episodic_return": s.train_episodic_return,
-                       "teacher_threshold": teacher_buffer.threshold if use_demos else float("nan"),
-                       "teacher_episodes": teacher_buffer.num_episodes, "promotions": s.promotions,
-                       "alpha": s.alpha, "updates": agent.num_updates, "time": s.train_time,
-                       "steps_per_second": (s.global_step - last_row[0]) / max(s.train_time - last_row[1], 1e-9)}
-                log.append(row | {k: float(stats.get(k, float("nan"))) for k in plumbing.PROGRESS_COLUMNS
-                                  if k not in row})
-                save_checkpoint()
-                plumbing.show_row(bar, row)
-                clock, last_row = time.perf_counter(), (s.global_step, s.train_time)  # evaluation left out
-            bar.update(1)
-        bar.close()
+                # 5. evaluation of the deterministic policy, the CSV row and a checkpoint
+                if s.global_step % args.eval_freq == 0:
+                    count_time()
+                    row = {"global_step": s.global_step, **evaluate_policy(eval_env, agent.act, args.eval_episodes),
+                           "train_episodic_return": s.train_episodic_return,
+                           "teacher_threshold": teacher_buffer.threshold if use_demos else float("nan"),
+                           "teacher_episodes": teacher_buffer.num_episodes, "promotions": s.promotions,
+                           "alpha": s.alpha, "updates": agent.num_updates, "time": s.train_time,
+                           "steps_per_second": (s.global_step - last_row[0]) / max(s.train_time - last_row[1], 1e-9)}
+                    log.append(row | {k: float(stats.get(k, float("nan"))) for k in plumbing.PROGRESS_COLUMNS
+                                      if k not in row})
+                    save_checkpoint()
+                    plumbing.show_row(bar, row)
+                    clock, last_row = time.perf_counter(), (s.global_step, s.train_time)  # evaluation left out
+                bar.update(1)
         count_time()
         save_checkpoint()
     plumbing.save_model(run_dir, agent, disc, args)

@@ -120,7 +120,7 @@ def assert_one_line_error(proc):
     assert proc.returncode != 0
     assert "Traceback" not in proc.stderr
     lines = [line for line in proc.stderr.splitlines()  # leaving out MuJoCo's XML warning and tqdm's bar
-             if line.strip() and "WARNING: compiler" not in line and "step/s" not in line]
+             if line.strip() and "WARNING: compiler" not in line and not re.search(r"\d+/\d+ \[", line)]
     assert len(lines) == 1 and "error" in lines[0], proc.stderr
 
 
@@ -1708,6 +1708,7 @@ def test_loading_refuses_a_file_that_would_run_code(tmp_path, poor_hopper_demos,
         torch.save({"loop": Payload(), "actor": Payload()}, run / name)
     for proc in run_scripts(("sail.py", "--resume", str(run)), ("evaluate.py", str(run))):
         assert_one_line_error(proc)
+        assert "not a checkpoint this project wrote" in proc.stderr and "weights_only" not in proc.stderr
     assert not marker.exists()
 
 
@@ -2042,3 +2043,101 @@ def test_bench_times_every_part_with_sail_defaults():
     assert lines[1].startswith("CPU: ")
     for part in ("1. ", "2. updates/s", "3. env steps/s"):
         assert any(line.startswith(part) for line in lines), proc.stdout
+
+
+def test_a_run_folder_in_use_refuses_a_second_process_and_a_resume_says_where_it_goes_on(tmp_path, straight_run):
+    """A run folder is locked by the process that runs it (an OS lock, gone with the process): a second
+    --resume of it is one line and writes nothing; once the lock is gone the same --resume goes on."""
+    import fcntl
+    import json
+    import shutil
+    run = tmp_path / "run"
+    shutil.copytree(straight_run, run)
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    with open(run / ".lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        proc = run_script("sail.py", "--resume", str(run), "--total-timesteps", "1250")
+    assert_one_line_error(proc)
+    assert "in use" in proc.stderr
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+    proc = run_script("sail.py", "--resume", str(run), "--total-timesteps", "1250")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert f"resumed {run} at step 1000 of 1250" in proc.stdout
+    assert json.loads((run / "config.json").read_text())["total_timesteps"] == 1250
+
+
+def test_resuming_a_finished_run_or_another_scripts_run_is_one_line(tmp_path, straight_run):
+    import json
+    import shutil
+    finished, other = tmp_path / "finished", tmp_path / "other"
+    shutil.copytree(straight_run, finished)
+    shutil.copytree(straight_run, other)
+    config = json.loads((other / "config.json").read_text())
+    (other / "config.json").write_text(json.dumps(config | {"script": "gail.py"}))
+    done, wrong_script, gail_on_sail = run_scripts(("sail.py", "--resume", str(finished)),
+                                                   ("sail.py", "--resume", str(other)),
+                                                   ("gail.py", "--resume", str(finished)))
+    for proc in (done, wrong_script, gail_on_sail):
+        assert_one_line_error(proc)
+    assert "finished its 1000 steps" in done.stderr
+    assert "a run of gail.py, not of sail.py" in wrong_script.stderr
+    assert "a run of sail.py, not of gail.py" in gail_on_sail.stderr
+
+
+def test_flag_values_that_would_train_nothing_or_escape_the_output_folder_are_one_line(tmp_path):
+    out = tmp_path / "runs"
+    procs = run_scripts(*(("sail.py", *flags, "--output-dir", str(out)) for flags in (
+        ["--tau", "5"], ["--tau", "0"], ["--gamma", "1.5"], ["--lr", "0"], ["--disc-lr", "0"],
+        ["--total-timesteps", "5000", "--eval-freq", "1000"],  # ends inside the 10k random steps
+        ["--env", "Hopper-v5", "--run-name", "../escaped", "--total-timesteps", "20000"])))
+    for proc in procs:
+        assert_one_line_error(proc)
+    assert "a folder name, not a path" in procs[-1].stderr
+    assert not (tmp_path / "escaped").exists()
+
+
+def test_a_full_disk_keeps_the_previous_file_and_says_so_in_one_line(tmp_path):
+    import plumbing
+    path = tmp_path / "checkpoint.pt"
+    path.write_bytes(b"the previous checkpoint")
+
+    def full_disk(f):
+        f.write(b"half of it")
+        raise OSError(28, "No space left on device")
+    with pytest.raises(ConfigError, match="No space left on device; the previous checkpoint.pt is kept"):
+        plumbing.atomic_write(str(path), full_disk)
+    assert path.read_bytes() == b"the previous checkpoint"
+    assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]  # no temp file left
+
+
+def test_a_non_finite_loss_says_whether_a_checkpoint_is_kept(tmp_path):
+    import plumbing
+    plumbing.check_finite({"critic_loss": torch.tensor(1.0)}, "at step 5", str(tmp_path))
+    with pytest.raises(ConfigError, match="had written no checkpoint yet"):
+        plumbing.check_finite({"critic_loss": torch.tensor(float("inf"))}, "at step 5", str(tmp_path))
+    (tmp_path / "checkpoint.pt").write_bytes(b"")
+    with pytest.raises(ConfigError, match="last good checkpoint in .* is kept"):
+        plumbing.check_finite({"critic_loss": torch.tensor(float("nan"))}, "at step 5", str(tmp_path))
+
+
+def test_the_bar_shows_no_time_left_during_the_warm_up(capsys):
+    import plumbing
+    bar = plumbing.progress_bar(1000, 0, "sail Hopper-v5", warm_up=500)
+    bar.update(100)
+    during = str(bar)
+    bar.update(500)
+    after = str(bar)
+    bar.close()
+    assert "warm-up" in during and "<" not in during  # tqdm writes the time left as "<" + time
+    assert "warm-up" not in after and "<" in after
+
+
+def test_a_resumed_bar_shows_the_last_evaluation_and_one_teacher_episode_is_singular(straight_run):
+    import plumbing
+    row = read_csv(straight_run)[-1]
+    bar = plumbing.progress_bar(2000, int(row["global_step"]), "sail", 500,
+                                {k: float(v) for k, v in row.items()})
+    text = str(bar)
+    bar.close()
+    assert f"eval={float(row['eval_return']):.0f}" in text and "1000/2000" in text
+    assert plumbing.count(1, "episode") == "1 episode" and plumbing.count(4, "episode") == "4 episodes"
