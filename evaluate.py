@@ -49,6 +49,10 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0):
     if not os.path.isfile(os.path.join(run_dir, "config.json")):
         raise ConfigError(f"{run_dir}: no config.json there (not a run folder)")
     config = plumbing.read_config(run_dir)
+    script = getattr(config, "script", "sail.py")
+    if script not in ("sail.py", "bc.py", "make_demos.py"):
+        raise ConfigError(f"{run_dir}: a run of {script}; evaluate.py plays the actors of sail.py, bc.py and "
+                          "make_demos.py --save-teacher")
     path = next((p for p in (os.path.join(run_dir, n) for n in ("model.pt", "checkpoint.pt")) if os.path.isfile(p)),
                 None)
     if path is None:

@@ -2074,11 +2074,12 @@ def test_resuming_a_finished_run_or_another_scripts_run_is_one_line(tmp_path, st
     shutil.copytree(straight_run, other)
     config = json.loads((other / "config.json").read_text())
     (other / "config.json").write_text(json.dumps(config | {"script": "gail.py"}))
-    done, wrong_script, gail_on_sail = run_scripts(("sail.py", "--resume", str(finished)),
-                                                   ("sail.py", "--resume", str(other)),
-                                                   ("gail.py", "--resume", str(finished)))
-    for proc in (done, wrong_script, gail_on_sail):
+    done, wrong_script, gail_on_sail, evaluate_gail = run_scripts(
+        ("sail.py", "--resume", str(finished)), ("sail.py", "--resume", str(other)),
+        ("gail.py", "--resume", str(finished)), ("evaluate.py", str(other)))
+    for proc in (done, wrong_script, gail_on_sail, evaluate_gail):
         assert_one_line_error(proc)
+    assert "a run of gail.py; evaluate.py plays" in evaluate_gail.stderr
     assert "finished its 1000 steps" in done.stderr
     assert "a run of gail.py, not of sail.py" in wrong_script.stderr
     assert "a run of sail.py, not of gail.py" in gail_on_sail.stderr
