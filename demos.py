@@ -121,7 +121,7 @@ def read_minari(source):
     t+1 make transition t."""
     try:
         minari = _minari()
-    except ConfigError as e:
+    except ConfigError:
         if os.path.isdir(source):
             raise
         raise ConfigError(f"{source} is not a demo file; as a Minari dataset id, it needs the minari package "
