@@ -16,7 +16,9 @@ get their own <env>-Ndemos.png and section; results.md with, per env and method:
 seeds, env steps, final return (mean of the last 5 evaluations, for BC its last one; mean +- std
 over seeds), the env steps at which the evaluation return first reached the teacher's, the env
 steps of the first promotion into the teacher buffer, and the mean evaluation return of the early
-phase (evaluations up to --early-steps, averaged over seeds).
+phase (evaluations up to --early-steps, averaged over seeds). Above those tables, one table of the
+presets and baselines (PRESETS) per env: the seeds' final returns as mean, median, range and a 95%
+bootstrap interval of the mean (bootstrap_interval).
 """
 
 import csv
@@ -107,9 +109,40 @@ def load_run(run_dir):
     return config, rows
 
 
+BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED = 10_000, 0
+
+
+def bootstrap_interval(values, level=0.95, resamples=BOOTSTRAP_RESAMPLES, seed=BOOTSTRAP_SEED):
+    """Percentile bootstrap interval of the mean of values (one final return per seed): draw `resamples`
+    samples of as many values with replacement (numpy, a fixed seed: the same values give the same
+    interval), take each one's mean, and return the central `level` of those means. With two or three
+    values it is their range (a resample of the lowest value alone is 1 in 4 or 1 in 27, more than 2.5%);
+    with one there is none (NaNs)."""
+    values = np.asarray(values, dtype=float)
+    if len(values) < 2:
+        return float("nan"), float("nan")
+    means = values[np.random.default_rng(seed).integers(len(values), size=(resamples, len(values)))].mean(1)
+    low, high = np.quantile(means, [(1 - level) / 2, (1 + level) / 2])
+    return float(low), float(high)
+
+
+def final_returns(runs, last):
+    """Each seed's final return: the mean of its last `last` evaluations."""
+    return [float(np.mean([r["eval_return"] for r in rows[-last:]])) for _, rows in runs]
+
+
+def seed_statistics(finals, teacher):
+    """The headline table's cells for one method's final returns."""
+    low, high = bootstrap_interval(finals)
+    return {"seeds": len(finals), "mean": f"{np.mean(finals):.0f}", "median": f"{np.median(finals):.0f}",
+            "min to max": f"{min(finals):.0f}" if len(finals) == 1 else f"{min(finals):.0f} to {max(finals):.0f}",
+            "95% interval of the mean": "" if np.isnan(low) else f"{low:.0f} to {high:.0f}",
+            "vs teacher": f"{np.mean(finals) / teacher:.2f}x"}
+
+
 def summarise(runs, teacher, last, early_steps):
     """One table row for the runs (seeds) of one method."""
-    finals = [np.mean([r["eval_return"] for r in rows[-last:]]) for _, rows in runs]
+    finals = final_returns(runs, last)
     early = [np.mean([r["eval_return"] for r in rows if r["global_step"] <= early_steps]) for _, rows in runs]
     reached, promoted = [], []
     for _, rows in runs:
@@ -173,9 +206,25 @@ def write_results(args):
             teachers[key] = teacher_return(config)
     os.makedirs(args.output_dir, exist_ok=True)
 
+    # the presets and baselines first: the spread of their seeds' final returns
+    headline = ["env", "method", "seeds", "mean", "median", "min to max", "95% interval of the mean", "vs teacher"]
+    lines = []
+    for (env_id, num_demos), methods in sorted(by_env.items()):
+        title = env_id if num_demos == 1 else f"{env_id}, {num_demos} teacher episodes"
+        for method in (m for m in PRESETS if m in methods):
+            finals = final_returns(methods[method], 1 if method == "BC" else args.last)
+            row = seed_statistics(finals, teachers.get((env_id, num_demos), float("nan")))
+            lines.append("| " + " | ".join(str((row | {"env": title, "method": method})[c]) for c in headline) + " |")
+    if lines:
+        lines = ["### Final returns of the presets and baselines", "",
+                 f"Per seed the mean of its last {args.last} evaluations (BC: its last); over the seeds their mean, "
+                 f"median and range, and a 95% percentile bootstrap interval of the mean ({BOOTSTRAP_RESAMPLES:,} "
+                 f"resamples of the seeds with replacement, numpy seed {BOOTSTRAP_SEED}: `plot.bootstrap_interval`; "
+                 "with two or three seeds it is their range, and with so few seeds it understates the "
+                 "uncertainty).", "", "| " + " | ".join(headline) + " |", "|" + "---|" * len(headline), *lines, ""]
+
     columns = ["method", "seeds", "env steps", "final", "per seed", "vs teacher", "reached teacher", "first promotion",
                "early"]
-    lines = []
     for (env_id, num_demos), methods in sorted(by_env.items()):
         teacher = teachers.get((env_id, num_demos), float("nan"))
         header = columns[:-1] + [f"mean to {args.early_steps / 1000:.0f}k"]

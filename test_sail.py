@@ -1803,6 +1803,10 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
     assert "| SAIL | 1 | 70k | 500 +- 0 | 500 |" in table
     assert "| SAIL (--gamma 0.995) | 1 | 70k | 520 +- 0 | 520 | 0.39x |" in table
     assert "target actor" not in table
+    # above them the presets and baselines: the seeds' mean, median, range and bootstrap interval of the mean
+    assert "| Hopper-v5 | SAIL | 2 | 1050 | 1050 | 500 to 1600 | 500 to 1600 | 0.80x |" in table
+    assert "| Hopper-v5, 4 teacher episodes | SAIL | 1 | 500 | 500 | 500 |  | 0.38x |" in table
+    assert "| Hopper-v5 | SAIL (--gamma 0.995) |" not in table
     # <env>.png: the presets and baselines; <env>-ablations.png: every other method, beside SAIL
     assert sorted(p.name for p in (tmp_path / "plots").glob("*.png")) == ["Hopper-v5-4demos.png",
                                                                          "Hopper-v5-ablations.png", "Hopper-v5.png"]
@@ -1828,6 +1832,15 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
     # the figures' rule: every name sail.py, bc.py and gail.py give a run without flags is a preset
     assert set(sail.PRESET_NAMES.values()) | {"BC", "GAIL", "POfD"} == set(plot.PRESETS)
     assert plot.method_name({"algo": "gail", "method": "POfD", "gamma": 0.995}) == "POfD"
+    # the bootstrap interval of the mean: none for one seed, the range for two or three, about the mean +- 1.96
+    # standard errors for many, and the same numbers every time
+    assert np.isnan(plot.bootstrap_interval([5.0])).all()
+    assert plot.bootstrap_interval([3.0] * 4) == (3.0, 3.0)
+    assert plot.bootstrap_interval([1.0, 2.0]) == (1.0, 2.0) and plot.bootstrap_interval([3.0, 1.0, 2.0]) == (1.0, 3.0)
+    values = np.arange(20.0)
+    low, high = plot.bootstrap_interval(values)
+    assert low < values.mean() < high and abs((high - low) / 2 - 1.96 * values.std() / np.sqrt(20)) < 0.2
+    assert plot.bootstrap_interval(values) == (low, high)
 
 
 # ---------------------------------------------------------------------------------------------
