@@ -1,19 +1,21 @@
 """Speed of SAIL's training against a plain CleanRL-style TD3 loop, measured side by side.
 
-    python bench.py                      # Walker2d-v5 sizes, 2 threads, about a minute
-    python bench.py --threads 1
+    python bench.py                      # Walker2d-v5 sizes, 1 and 2 threads, a few minutes
+    python bench.py --threads 1 --breakdown
 
-Four measurements, each in this one process, so that both loops see the same machine state (SAIL
-here is the paper's, --algo sail-paper, without the additions sail.py has on by default):
+What it measures, each on the CPU at hand (its model printed first):
   1. the compute limit: GFLOP/s of a 256x256x256 float32 matmul, through torch.mm (MKL) and
-     through oneDNN (cpu_kernels.linear), and the FLOPs of one SAIL update;
-  2. updates on the same random data: the plain TD3 update against SAIL's update (TD3 step,
-     discriminator reward of the batch, discriminator training amortised over --disc-freq),
+     through oneDNN (cpu_kernels.linear), and the FLOPs of one TD3 update;
+  2. updates on the same random data: the plain TD3 update against the paper's SAIL update (TD3
+     step, discriminator reward of the batch, discriminator training amortised over --disc-freq),
      with each of sail.py's CPU kernels (--kernels torch, onednn) and the one `auto` picks;
-  3. end-to-end on the real env: env steps/s after the warm-up, the plain loop against
-     sail.py itself with --algo sail-paper --kernels auto (its progress.csv excludes evaluation);
-  4. peak memory: a Walker2d run's state with a full 1M-transition self buffer, a checkpoint
-     written from it.
+  3. end-to-end on the real env, for each --threads: env steps/s after the warm-up of the plain
+     loop, of sail.py's defaults and of the paper's SAIL (`sail.py --algo sail-paper`), both
+     sail.py runs timed by their own progress.csv (evaluations excluded); with --breakdown also
+     the defaults with each addition that costs compute turned off; then two runs of the defaults
+     side by side with one thread each, as grids run them on a 2-core machine;
+  4. peak memory: a Walker2d run's state with a full 1M-transition self buffer, and the time to
+     write its checkpoint (sail.py writes one at every evaluation).
 The plain loop is CleanRL's td3_continuous_action.py reduced to its update: two nn.Linear
 critics, one update per env step, a Python loop for Polyak averaging, numpy replay storage
 copied to torch for every batch.
@@ -47,12 +49,13 @@ DISC_FREQ, DISC_STEPS, DISC_LR = 500, 10, 1e-3  # sail.py's defaults
 def parse_args():
     p = ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="Walker2d-v5", help="env of the end-to-end part and the sizes")
-    p.add_argument("--threads", type=plumbing.threads, default=2, help="torch CPU threads")
+    p.add_argument("--threads", type=plumbing.threads, nargs="+", default=[1, 2], help="torch CPU threads, each timed")
     p.add_argument("--hidden", type=positive_int, default=256, help="hidden size of both layers of every network")
     p.add_argument("--batch-size", type=positive_int, default=256, help="batch size")
     p.add_argument("--updates", type=positive_int, default=1000, help="timed updates of part 2, per loop")
-    p.add_argument("--env-steps", type=positive_int, default=3000, help="timed env steps of part 3, per loop")
+    p.add_argument("--env-steps", type=positive_int, default=2000, help="timed env steps of part 3, per loop")
     p.add_argument("--warmup", type=positive_int, default=1000, help="random env steps before the timed ones")
+    p.add_argument("--breakdown", action="store_true", help="part 3 also times the defaults without each addition")
     p.add_argument("--skip-memory", action="store_true", help="skip part 4")
     args = p.parse_args()
     return args
@@ -165,14 +168,13 @@ def update_flops(obs_dim, act_dim, hidden, batch_size, discriminator=True, polic
     return batch_size * (target + critic_step + reward + actor_step)
 
 
-def sail_flags(args, env_id, output_dir, total, kernels="auto"):
-    """sail.py's command line for the paper's SAIL (the TD3 update and D alone, as the plain loop's
-    like) at the bench's sizes; sail.py's default additions cost more, README's Speed says how much."""
-    return ["--algo", "sail-paper", "--env", env_id, "--threads", str(args.threads),
-            "--hidden", str(args.hidden), str(args.hidden), "--disc-hidden", str(args.hidden), str(args.hidden),
-            "--batch-size", str(args.batch_size), "--learning-starts", str(args.warmup),
-            "--total-timesteps", str(total), "--eval-freq", str(args.warmup),
-            "--eval-episodes", "1", "--output-dir", output_dir, "--kernels", kernels]
+def sail_flags(args, threads, output_dir, total):
+    """sail.py's command line at the bench's sizes (its defaults otherwise): --warmup random steps, then
+    --env-steps timed ones, an evaluation of one episode after each --warmup steps."""
+    return ["--env", args.env, "--threads", str(threads), "--hidden", str(args.hidden), str(args.hidden),
+            "--disc-hidden", str(args.hidden), str(args.hidden), "--batch-size", str(args.batch_size),
+            "--learning-starts", str(args.warmup), "--total-timesteps", str(total), "--eval-freq", str(args.warmup),
+            "--eval-episodes", "1", "--output-dir", output_dir]
 
 
 def paper_sail_update(agent, disc, teacher_buffer, self_buffer, batch_size):
@@ -249,24 +251,36 @@ def plain_loop_env_steps(args):
     return args.env_steps / (time.perf_counter() - start)
 
 
-def sail_env_steps(args):
-    """Part 3, SAIL: sail.py itself. Its CSV's steps_per_second excludes evaluation; the first
-    row (every --warmup steps) is the warm-up, the others are timed."""
+def sail_env_steps(args, threads, *flag_sets):
+    """Part 3, SAIL: sail.py itself, once per set of extra flags, all at the same time (each in its own
+    process); the env steps/s of each. Its CSV's steps_per_second excludes evaluation; the first row
+    (after --warmup steps) is the warm-up, the others are timed."""
     with tempfile.TemporaryDirectory() as tmp:
-        command = [sys.executable, os.path.join(HERE, "sail.py"), *sail_flags(args, args.env, tmp, args.warmup + args.env_steps)]
-        out = subprocess.run(command, cwd=HERE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        if out.returncode != 0:
-            sys.exit(f"bench.py: error: sail.py failed: {(out.stderr.strip().splitlines() or ['?'])[-1]}")
-        run_dir = os.path.join(tmp, os.listdir(tmp)[0])
-        with open(os.path.join(run_dir, "progress.csv")) as f:
-            rows = list(csv.DictReader(f))
-    steps = [float(r["global_step"]) for r in rows]
-    seconds = [(b - a) / float(r["steps_per_second"]) for a, b, r in zip(steps, steps[1:], rows[1:])]
-    return (steps[-1] - steps[0]) / sum(seconds)
+        procs = [subprocess.Popen([sys.executable, os.path.join(HERE, "sail.py"), *flags, "--run-name", str(i),
+                                   *sail_flags(args, threads, tmp, args.warmup + args.env_steps)],
+                                  cwd=HERE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                 for i, flags in enumerate(flag_sets)]
+        rates = []
+        for i, proc in enumerate(procs):
+            stderr = proc.communicate()[1]
+            if proc.returncode != 0:
+                sys.exit(f"bench.py: error: sail.py failed: {(stderr.strip().splitlines() or ['?'])[-1]}")
+            with open(os.path.join(tmp, str(i), "progress.csv")) as f:
+                rows = list(csv.DictReader(f))
+            steps = [float(r["global_step"]) for r in rows]
+            seconds = [(b - a) / float(r["steps_per_second"]) for a, b, r in zip(steps, steps[1:], rows[1:])]
+            rates.append((steps[-1] - steps[0]) / sum(seconds))
+    return rates
+
+
+# the defaults' additions that cost compute in every update, each turned off (--breakdown)
+ADDITIONS_OFF = {"the learned action cost": ["--action-cost", "none"],
+                 "the return decomposition": ["--return-decomposition", "0"],
+                 "LayerNorm in the critics": ["--no-critic-layer-norm"]}
 
 
 MEMORY_SCRIPT = """
-import resource, tempfile, torch, numpy as np
+import resource, tempfile, time, torch, numpy as np
 import plumbing, td3
 from buffers import ReplayBuffer, TeacherBuffer, mixed_batch
 from discriminator import Discriminator, shaped_reward, train_discriminator
@@ -291,50 +305,58 @@ for _ in range(100):
     agent.update(obs, actions, shaped_reward(disc, obs, actions, "sail"), next_obs, terminated)
 run_dir = plumbing.make_run_dir(tempfile.mkdtemp(), "memory", {{}})
 state = {{"global_step": 10**6, "rows": [], "train_time": 0.0}}
+start = time.perf_counter()
 plumbing.save_checkpoint(run_dir + "/checkpoint.pt", {{"agent": agent, "disc": disc,
     "disc_optimizer": disc_optimizer, "self_buffer": buffer, "teacher_buffer": teacher, "env": EnvState(env),
     "eval_env": EnvState(eval_env), "rng": plumbing.RNGs(np.random.default_rng(0))}},
     loop=state, obs=env.reset()[0])
-print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2)
+print(time.perf_counter() - start, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2)
 """
 
 
 def peak_memory_gb(args):
-    """Part 4 in a fresh process, so that parts 1-3 do not count."""
-    out = subprocess.run([sys.executable, "-c", MEMORY_SCRIPT.format(threads=args.threads)], cwd=HERE,
+    """Part 4 in a fresh process, so that parts 1-3 do not count: peak GB, seconds to write the checkpoint."""
+    out = subprocess.run([sys.executable, "-c", MEMORY_SCRIPT.format(threads=args.threads[0])], cwd=HERE,
                          capture_output=True, text=True)
     if out.returncode != 0:
         sys.exit(f"bench.py: error: the memory measurement failed: {out.stderr.strip().splitlines()[-1]}")
-    return float(out.stdout.split()[-1])
+    seconds, gb = map(float, out.stdout.split()[-2:])
+    return gb, seconds
 
 
 def main(args):
-    torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     np.random.seed(0)
     env = make_env(args.env, seed=0)
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     print(f"bench.py: {args.env} (obs {obs_dim} incl. time feature, act {act_dim}), hidden {args.hidden}-{args.hidden}, "
-          f"batch {args.batch_size}, {args.threads} thread(s), torch {torch.__version__}, {time.strftime('%Y-%m-%d')}")
+          f"batch {args.batch_size}, torch {torch.__version__}, {time.strftime('%Y-%m-%d')}")
     print(f"CPU: {cpu_model()}, {os.cpu_count()} cores")
-
-    mkl, onednn = matmul_gflops()
     flops = update_flops(obs_dim, act_dim, args.hidden, args.batch_size)
-    best = max(mkl, onednn)
-    print(f"1. 256x256x256 matmul: torch.mm (MKL) {mkl:.0f} GFLOP/s, oneDNN {onednn:.0f} GFLOP/s; "
-          f"one SAIL update is {flops / 1e9:.3f} GFLOP -> limit {best * 1e9 / flops:.0f} updates/s at the faster rate")
-
-    plain, fast, auto = updates_on_random_data(args, obs_dim, act_dim)
-    print(f"2. updates/s on random data: plain TD3 {plain:.0f}; SAIL " + ", ".join(
-        f"--kernels {k} {v:.0f} ({v / plain:.2f}x)" for k, v in fast.items()) + f"; auto picks {auto}")
-
-    plain_sps, sail_sps = plain_loop_env_steps(args), sail_env_steps(args)
-    print(f"3. env steps/s on {args.env} (1 update per step, after {args.warmup} random steps): "
-          f"plain TD3 loop {plain_sps:.0f}, SAIL (--kernels auto) {sail_sps:.0f}, ratio {sail_sps / plain_sps:.2f}")
-
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        print(f"{threads} thread(s):")
+        mkl, onednn = matmul_gflops()
+        print(f"1. 256x256x256 matmul: torch.mm (MKL) {mkl:.0f} GFLOP/s, oneDNN {onednn:.0f} GFLOP/s; one update of the "
+              f"paper's SAIL is {flops / 1e9:.3f} GFLOP -> limit {max(mkl, onednn) * 1e9 / flops:.0f} updates/s")
+        plain, fast, auto = updates_on_random_data(args, obs_dim, act_dim)
+        print(f"2. updates/s on random data: plain TD3 {plain:.0f}; the paper's SAIL " + ", ".join(
+            f"--kernels {k} {v:.0f} ({v / plain:.2f}x)" for k, v in fast.items()) + f"; auto picks {auto}")
+        plain_sps = plain_loop_env_steps(args)
+        variants = {"SAIL's defaults": [], "the paper's SAIL": ["--algo", "sail-paper"]}
+        if args.breakdown:
+            variants |= {f"the defaults without {name}": flags for name, flags in ADDITIONS_OFF.items()}
+        rates = {name: sail_env_steps(args, threads, flags)[0] for name, flags in variants.items()}
+        print(f"3. env steps/s on {args.env} (1 update per step, after {args.warmup} random steps): plain TD3 loop "
+              f"{plain_sps:.0f}; " + "; ".join(f"{name} {v:.0f} ({v / plain_sps:.2f}x)" for name, v in rates.items()))
+    if (os.cpu_count() or 1) >= 2:
+        both = sail_env_steps(args, 1, [], [])
+        print(f"3. env steps/s of two runs of SAIL's defaults side by side, 1 thread each: {both[0]:.0f} + {both[1]:.0f}"
+              f" = {sum(both):.0f}")
     if not args.skip_memory:
+        gb, seconds = peak_memory_gb(args)
         print(f"4. peak memory of a Walker2d-v5 run with a full 1M-transition self buffer, after a checkpoint: "
-              f"{peak_memory_gb(args):.2f} GB")
+              f"{gb:.2f} GB; writing that checkpoint took {seconds:.1f} s")
     return 0
 
 

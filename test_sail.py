@@ -2049,13 +2049,17 @@ def test_grid_list_into_a_closed_pipe_is_quiet():
 def test_bench_times_every_part_with_sail_defaults():
     """bench.py drives sail.py's update and loop directly, so a change of sail.py's defaults (the
     return bonus needs episode returns in the buffers) must keep it running end to end."""
-    proc = run_script("bench.py", "--threads", "1", "--hidden", "16", "--updates", "30", "--env-steps", "400",
-                      "--warmup", "400", "--skip-memory")
+    proc = run_script("bench.py", "--threads", "1", "--hidden", "16", "--updates", "30", "--env-steps", "200",
+                      "--warmup", "300", "--skip-memory")
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.splitlines()
     assert lines[1].startswith("CPU: ")
     for part in ("1. ", "2. updates/s", "3. env steps/s"):
         assert any(line.startswith(part) for line in lines), proc.stdout
+    # the defaults are timed beside the paper's SAIL and the plain loop, and two runs side by side
+    end_to_end = [line for line in lines if line.startswith("3. env steps/s")]
+    assert "SAIL's defaults" in end_to_end[0] and "the paper's SAIL" in end_to_end[0], proc.stdout
+    assert "side by side" in end_to_end[-1], proc.stdout
 
 
 def test_a_run_folder_in_use_refuses_a_second_process_and_a_resume_says_where_it_goes_on(tmp_path, straight_run):
