@@ -62,8 +62,8 @@ GRIDS = {
         + grid(["Hopper-v5", "Walker2d-v5"], {"bc": ("bc.py", ["--threads", "1"])}, [1, 2, 3])
         + grid(["Hopper-v5", "Walker2d-v5"],
                {"no-adaptation": sail("SAIL-paper (--no-adaptation)", *PAPER, "--no-adaptation")}, [1, 2])
-        + grid(["HalfCheetah-v5", "Swimmer-v5"], {"sail": sail("SAIL-paper", *PAPER)}, [1, 2])
-        + grid(["Ant-v5"], {"sail": sail("SAIL-paper", *PAPER)}, [1])
+        + grid(["HalfCheetah-v5", "Swimmer-v5"], {"sail": sail("SAIL-paper", *PAPER)}, [1, 2, 3])
+        + grid(["Ant-v5"], {"sail": sail("SAIL-paper", *PAPER)}, [1, 2, 3])
         + grid(["Hopper-v5", "Walker2d-v5"], {"dac": DAC}, [1, 2])
         + grid(["HalfCheetah-v5", "Swimmer-v5"], {"dac": DAC}, [1])
         + grid(["Hopper-v5", "Walker2d-v5"], {"td3": sail("TD3 (sparse)", *OFF_POLICY, "--algo", "td3")}, [1])
