@@ -23,6 +23,7 @@ copied to torch for every batch.
 
 import copy
 import csv
+import math
 import os
 import subprocess
 import sys
@@ -168,13 +169,13 @@ def update_flops(obs_dim, act_dim, hidden, batch_size, discriminator=True, polic
     return batch_size * (target + critic_step + reward + actor_step)
 
 
-def sail_flags(args, threads, output_dir, total):
+def sail_flags(args, threads, output_dir):
     """sail.py's command line at the bench's sizes (its defaults otherwise): --warmup random steps, then
-    --env-steps timed ones, an evaluation of one episode after each --warmup steps."""
+    --env-steps timed ones; a CSV row (and an evaluation of one episode) at the end of each, and between."""
     return ["--env", args.env, "--threads", str(threads), "--hidden", str(args.hidden), str(args.hidden),
             "--disc-hidden", str(args.hidden), str(args.hidden), "--batch-size", str(args.batch_size),
-            "--learning-starts", str(args.warmup), "--total-timesteps", str(total), "--eval-freq", str(args.warmup),
-            "--eval-episodes", "1", "--output-dir", output_dir]
+            "--learning-starts", str(args.warmup), "--total-timesteps", str(args.warmup + args.env_steps),
+            "--eval-freq", str(math.gcd(args.warmup, args.env_steps)), "--eval-episodes", "1", "--output-dir", output_dir]
 
 
 def paper_sail_update(agent, disc, teacher_buffer, self_buffer, batch_size):
@@ -253,11 +254,11 @@ def plain_loop_env_steps(args):
 
 def sail_env_steps(args, threads, *flag_sets):
     """Part 3, SAIL: sail.py itself, once per set of extra flags, all at the same time (each in its own
-    process); the env steps/s of each. Its CSV's steps_per_second excludes evaluation; the first row
-    (after --warmup steps) is the warm-up, the others are timed."""
+    process); the env steps/s of each after the warm-up, from its CSV (whose steps_per_second excludes
+    the evaluations)."""
     with tempfile.TemporaryDirectory() as tmp:
         procs = [subprocess.Popen([sys.executable, os.path.join(HERE, "sail.py"), *flags, "--run-name", str(i),
-                                   *sail_flags(args, threads, tmp, args.warmup + args.env_steps)],
+                                   *sail_flags(args, threads, tmp)],
                                   cwd=HERE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
                  for i, flags in enumerate(flag_sets)]
         rates = []
@@ -267,9 +268,10 @@ def sail_env_steps(args, threads, *flag_sets):
                 sys.exit(f"bench.py: error: sail.py failed: {(stderr.strip().splitlines() or ['?'])[-1]}")
             with open(os.path.join(tmp, str(i), "progress.csv")) as f:
                 rows = list(csv.DictReader(f))
-            steps = [float(r["global_step"]) for r in rows]
-            seconds = [(b - a) / float(r["steps_per_second"]) for a, b, r in zip(steps, steps[1:], rows[1:])]
-            rates.append((steps[-1] - steps[0]) / sum(seconds))
+            steps = [int(r["global_step"]) for r in rows]
+            seconds = sum((b - a) / float(r["steps_per_second"]) for a, b, r in zip(steps, steps[1:], rows[1:])
+                          if a >= args.warmup)
+            rates.append(args.env_steps / seconds)
     return rates
 
 
