@@ -180,6 +180,10 @@ GRIDS = {
     "long-bonus": grid(["Walker2d-v5", "HalfCheetah-v5"], {"sail-return1-1M": sail(
         "SAIL-paper (--return-bonus 1)", "--total-timesteps", "1000000", "--threads", "1", "--algo", "sail-paper",
         "--return-bonus", "1")}, [1, 2, 3]),
+    # the confirmation of sail.py's defaults on seeds that no decision saw (6-8; seeds 1-5 chose them): whatever
+    # these runs show is the result, reported beside seeds 1-5, with no rerun and no change of the defaults on
+    # their account. Their runs are named as seeds 1-5's (`learning-actor-cost`, `decide-actor-cost`)
+    "confirm": grid(ALL_ENVS, {"sail-dan-cost-actor": sail("SAIL", *OFF_POLICY, *DEFAULTS)}, [6, 7, 8]),
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
                        {"sail-4demos": sail("SAIL-paper", *PAPER, "--num-demos", "4"),
