@@ -5,7 +5,7 @@
 
 What it measures, each on the CPU at hand (its model printed first):
   1. the compute limit: GFLOP/s of a 256x256x256 float32 matmul, through torch.mm (MKL) and
-     through oneDNN (cpu_kernels.linear), and the FLOPs of one TD3 update;
+     through oneDNN (cpu_kernels.linear), and the FLOPs of one update of the paper's SAIL;
   2. updates on the same random data: the plain TD3 update against the paper's SAIL update (TD3
      step, discriminator reward of the batch, discriminator training amortised over --disc-freq),
      with each of sail.py's CPU kernels (--kernels torch, onednn) and the one `auto` picks;
