@@ -184,6 +184,10 @@ GRIDS = {
     # these runs show is the result, reported beside seeds 1-5, with no rerun and no change of the defaults on
     # their account. Their runs are named as seeds 1-5's (`learning-actor-cost`, `decide-actor-cost`)
     "confirm": grid(ALL_ENVS, {"sail-dan-cost-actor": sail("SAIL", *OFF_POLICY, *DEFAULTS)}, [6, 7, 8]),
+    # the defaults with a teacher worse than standing still (demos/Hopper-v5-weak.npz: 629, where standing for the
+    # whole episode earns about 1000): where a change for such teachers starts from; seeds 9 and up, as every decision
+    "weak-teacher": grid(["Hopper-v5"], {"sail-weak": sail("SAIL (weak teacher)", *OFF_POLICY, *DEFAULTS, "--demos",
+                                                           "demos/Hopper-v5-weak.npz")}, [9, 10, 11]),
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
                        {"sail-4demos": sail("SAIL-paper", *PAPER, "--num-demos", "4"),
