@@ -142,22 +142,22 @@ GRIDS = {
     "learning-ln-onpolicy-promotion-rrd": grid(ALL_ENVS, {"sail-ln-onpolicy-promotion-rrd1-rate": sail(
         "SAIL (--action-cost none --no-disc-action-norm)", *LN_ONPOLICY_PROMOTION, "--return-decomposition", "1",
         "--decomposition-unit", "rate")}, [1, 2, 3]),
-    # the triple with D's actions normalised as its states: D's output hardly changed with the actions (Ant-v5:
-    # 0.759-0.768 for the teacher's actions scaled 0-2x), so nothing in the reward told the actor what its
+    # the triple with D's actions normalised as its states: D's output hardly changed with the actions (Ant-v5,
+    # the teacher's actions scaled 0-2x: results/probe.py), so nothing in the reward told the actor what its
     # control costs
     "learning-disc-action-norm": grid(ALL_ENVS, {"sail-ln-onpolicy-promotion-rrd1-rate-dan": sail(
         "SAIL (--action-cost none)", *OFF_POLICY, *FIVE_ADDITIONS)}, [1, 2, 3]),
     # the same with a learned quadratic action cost in the decomposition's reward (--action-cost reward): on
-    # Ant-v5 D stayed blind to the actions' size even so, and the per-step reward model learned about a fifth of
-    # what they cost (results/rrd_probe.py); refitted with the explicit term on the same R_B it learned c = 0.385
-    # (the env's 0.5); on HalfCheetah, Walker2d and Swimmer c stayed near where it started (0.0017-0.0030)
+    # Ant-v5 D stayed blind to the actions' size even so, and the per-step reward model learned a fraction of
+    # what they cost (results/rrd_probe.py); with the explicit term Ant-v5's c came to 0.34-0.35 (seed 1's CSV;
+    # the env's weight is 0.5)
     "learning-action-cost": grid(ALL_ENVS, {"sail-ln-onpolicy-promotion-rrd1-rate-dan-cost": sail(
         "SAIL (--action-cost reward)", *OFF_POLICY, *DAN_FLAGS, "--action-cost", "reward")}, [1, 2, 3]),
     # the same, with the actor charged that learned cost beside Q (--action-cost reward-and-actor): on Ant-v5 the
-    # critic's Q is nearly flat in the action (Q at the zero action within 0.4% of Q at the actor's), so the cost
-    # in the reward hardly reached the actor, and once the ant is upside down (Q near 0 whatever it does) the actor
-    # runs its actions into the bounds: an actor that takes the zero action there instead scores 1161 against
-    # 577 (seed 3, 30 episodes; results/early_ends.py --rest-when-upside-down)
+    # critic's Q is nearly flat in the action (Q at the zero action nearly Q at the actor's), so the cost in the
+    # reward hardly reached the actor, and once the ant is upside down (Q near 0 whatever it does) the actor runs
+    # its actions into the bounds (results/early_ends.py and its --rest-when-upside-down; the probes' checkpoints
+    # were not kept)
     "learning-actor-cost": grid(ALL_ENVS, {"sail-dan-cost-actor": sail("SAIL", *OFF_POLICY, *DEFAULTS)}, [1, 2, 3]),
     # seeds 4 and 5 of the five additions and of that pair, on all five envs, so that the choice between them is
     # made on 5 seeds each. Fixed before these runs started: the pair becomes the default if its 5-seed mean
