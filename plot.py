@@ -18,7 +18,8 @@ over seeds), the env steps at which the evaluation return first reached the teac
 steps of the first promotion into the teacher buffer, and the mean evaluation return of the early
 phase (evaluations up to --early-steps, averaged over seeds). Above those tables, one table of the
 presets and baselines (PRESETS) per env: the seeds' final returns as mean, median, range and a 95%
-bootstrap interval of the mean (bootstrap_interval).
+bootstrap interval of the mean (bootstrap_interval), runs on the seeds that no decision saw
+(CONFIRMATION_SEEDS) apart from the others.
 """
 
 import csv
@@ -68,6 +69,9 @@ def parse_args(argv=None):
 # and SAIL-paper
 PRESETS = ("SAIL", "SAIL-paper", "DAC", "TD3 (sparse)", "IRCR", "RRD", "BC", "GAIL", "POfD")
 PAPER_SAIL = "SAIL-paper"  # drawn in both figures, as SAIL is
+# seeds that no decision saw (results/grid.py's `confirm`): the first table reports a preset's runs on them apart
+# from its runs on the seeds that its choice was made on
+CONFIRMATION_SEEDS = (6, 7, 8)
 
 
 def method_name(config, run_dir="the run"):
@@ -140,6 +144,17 @@ def seed_statistics(finals, teacher):
             "vs teacher": f"{np.mean(finals) / teacher:.2f}x"}
 
 
+def seed_groups(method, runs, seeds):
+    """A method's runs for the first table: those on CONFIRMATION_SEEDS apart from the others, each group
+    named by its seeds ("SAIL, seeds 6, 7, 8"); all together under the method's name where it has none."""
+    fresh = [run for run in runs if seeds[run[0]] in CONFIRMATION_SEEDS]
+    if not fresh:
+        return {method: runs}
+    groups = ([run for run in runs if seeds[run[0]] not in CONFIRMATION_SEEDS], fresh)
+    return {f"{method}, seeds {', '.join(str(s) for s in sorted(seeds[run[0]] for run in group))}": group
+            for group in groups if group}
+
+
 def summarise(runs, teacher, last, early_steps):
     """One table row for the runs (seeds) of one method."""
     finals = final_returns(runs, last)
@@ -192,7 +207,7 @@ def plot_env(env_id, num_demos, methods, teacher, path, colors):
 
 def write_results(args):
     by_env = defaultdict(lambda: defaultdict(list))
-    teachers = {}
+    teachers, seeds = {}, {}
     left_out = []
     for run in args.runs:
         config, rows = load_run(run)
@@ -202,6 +217,7 @@ def write_results(args):
             continue
         key = (config["env"], config.get("num_demos", 1))  # 1 and 4 teacher episodes: apart
         by_env[key][method_name(config, run)].append((run, rows))
+        seeds[run] = config.get("seed")
         if config["algo"] not in ("td3", "ircr"):  # no teacher episodes used
             teachers[key] = teacher_return(config)
     os.makedirs(args.output_dir, exist_ok=True)
@@ -212,9 +228,10 @@ def write_results(args):
     for (env_id, num_demos), methods in sorted(by_env.items()):
         title = env_id if num_demos == 1 else f"{env_id}, {num_demos} teacher episodes"
         for method in (m for m in PRESETS if m in methods):
-            finals = final_returns(methods[method], 1 if method == "BC" else args.last)
-            row = seed_statistics(finals, teachers.get((env_id, num_demos), float("nan")))
-            lines.append("| " + " | ".join(str((row | {"env": title, "method": method})[c]) for c in headline) + " |")
+            for name, runs in seed_groups(method, methods[method], seeds).items():
+                finals = final_returns(runs, 1 if method == "BC" else args.last)
+                row = seed_statistics(finals, teachers.get((env_id, num_demos), float("nan")))
+                lines.append("| " + " | ".join(str((row | {"env": title, "method": name})[c]) for c in headline) + " |")
     if lines:
         lines = ["### Final returns of the presets and baselines", "",
                  f"Per seed the mean of its last {args.last} evaluations (BC: its last); over the seeds their mean, "

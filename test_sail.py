@@ -1836,6 +1836,16 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
     # the figures' rule: every name sail.py, bc.py and gail.py give a run without flags is a preset
     assert set(sail.PRESET_NAMES.values()) | {"BC", "GAIL", "POfD"} == set(plot.PRESETS)
     assert plot.method_name({"algo": "gail", "method": "POfD", "gamma": 0.995}) == "POfD"
+    # a preset's runs on the seeds that no decision saw (6-8) stand apart in the first table, named by their seeds
+    fresh = tmp_path / "Hopper-v5__run-fresh__6"
+    shutil.copytree(runs[0], fresh)
+    (fresh / "config.json").write_text(json.dumps(json.loads((fresh / "config.json").read_text()) | {"seed": 6}))
+    assert main_in_process(plot.main, [*runs[:2], str(fresh), "--output-dir", str(tmp_path / "fresh")],
+                           capsys).returncode == 0
+    table = (tmp_path / "fresh" / "results.md").read_text()
+    assert "| Hopper-v5 | SAIL, seeds 1, 2 | 2 | 1050 | 1050 | 500 to 1600 | 500 to 1600 | 0.80x |" in table
+    assert f"| Hopper-v5 | SAIL, seeds 6 | 1 | 1600 | 1600 | 1600 |  | {1600 / teacher:.2f}x |" in table
+    assert "| SAIL | 3 | 70k, 70k, 70k |" in table  # the method's own table pools every seed
     # the bootstrap interval of the mean: none for one seed, the range for two or three, about the mean +- 1.96
     # standard errors for many, and the same numbers every time
     assert np.isnan(plot.bootstrap_interval([5.0])).all()
