@@ -4,8 +4,9 @@
     python bench.py --threads 1 --breakdown
 
 What it measures, each on the CPU at hand (its model printed first):
-  1. the compute limit: GFLOP/s of a 256x256x256 float32 matmul, through torch.mm (MKL) and
-     through oneDNN (cpu_kernels.linear), and the FLOPs of one update of the paper's SAIL;
+  1. the compute limit: GFLOP/s of a float32 matmul of the networks' size (--hidden: 256x256x256),
+     through torch.mm (MKL) and through oneDNN (cpu_kernels.linear), and the FLOPs of one update of
+     the paper's SAIL;
   2. updates on the same random data: the plain TD3 update against the paper's SAIL update (TD3
      step, discriminator reward of the batch, discriminator training amortised over --disc-freq),
      with each of sail.py's CPU kernels (--kernels torch, onednn) and the one `auto` picks;
@@ -338,8 +339,8 @@ def main(args):
     for threads in args.threads:
         torch.set_num_threads(threads)
         print(f"{threads} thread(s):")
-        mkl, onednn = matmul_gflops()
-        print(f"1. 256x256x256 matmul: torch.mm (MKL) {mkl:.0f} GFLOP/s, oneDNN {onednn:.0f} GFLOP/s; one update of the "
+        mkl, onednn = matmul_gflops(args.hidden)
+        print(f"1. {args.hidden}x{args.hidden}x{args.hidden} matmul: torch.mm (MKL) {mkl:.0f} GFLOP/s, oneDNN {onednn:.0f} GFLOP/s; one update of the "
               f"paper's SAIL is {flops / 1e9:.3f} GFLOP -> limit {max(mkl, onednn) * 1e9 / flops:.0f} updates/s")
         plain, fast, auto = updates_on_random_data(args, obs_dim, act_dim)
         print(f"2. updates/s on random data: plain TD3 {plain:.0f}; the paper's SAIL " + ", ".join(

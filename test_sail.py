@@ -2063,8 +2063,8 @@ def test_grid_list_into_a_closed_pipe_is_quiet():
 def test_bench_times_every_part_with_sail_defaults():
     """bench.py drives sail.py's update and loop directly, so a change of sail.py's defaults (the
     return bonus needs episode returns in the buffers) must keep it running end to end."""
-    proc = run_script("bench.py", "--threads", "1", "--hidden", "16", "--updates", "30", "--env-steps", "200",
-                      "--warmup", "300", "--skip-memory")
+    proc = run_script("bench.py", "--threads", "1", "--hidden", "16", "--updates", "30", "--env-steps", "100",
+                      "--warmup", "200", "--skip-memory")
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.splitlines()
     assert lines[1].startswith("CPU: ")
