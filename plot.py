@@ -19,7 +19,8 @@ steps of the first promotion into the teacher buffer, and the mean evaluation re
 phase (evaluations up to --early-steps, averaged over seeds). Above those tables, one table of the
 presets and baselines (PRESETS) per env: the seeds' final returns as mean, median, range and a 95%
 bootstrap interval of the mean (bootstrap_interval), runs on the seeds that no decision saw
-(CONFIRMATION_SEEDS) apart from the others.
+(CONFIRMATION_SEEDS) apart from the others. A DAC run whose config.json names no commit (older
+code, CODE_RECORDED_ONLY) is "DAC (code not recorded)", a method of its own.
 """
 
 import csv
@@ -72,6 +73,10 @@ PAPER_SAIL = "SAIL-paper"  # drawn in both figures, as SAIL is
 # seeds that no decision saw (results/grid.py's `confirm`): the first table reports a preset's runs on them apart
 # from its runs on the seeds that its choice was made on
 CONFIRMATION_SEEDS = (6, 7, 8)
+# presets whose committed seeds mix code before and after a fix (DAC: the zero action in its absorbing state) and
+# whose older runs name no commit in config.json: such a run is drawn and tabled as "<method> (code not recorded)",
+# apart from the preset, so that what compares SAIL with the preset counts only runs of code that is known
+CODE_RECORDED_ONLY = ("DAC",)
 
 
 def method_name(config, run_dir="the run"):
@@ -216,7 +221,10 @@ def write_results(args):
                             if rows else os.path.basename(os.path.normpath(run)))
             continue
         key = (config["env"], config.get("num_demos", 1))  # 1 and 4 teacher episodes: apart
-        by_env[key][method_name(config, run)].append((run, rows))
+        method = method_name(config, run)
+        if method in CODE_RECORDED_ONLY and not config.get("commit"):
+            method += " (code not recorded)"
+        by_env[key][method].append((run, rows))
         seeds[run] = config.get("seed")
         if config["algo"] not in ("td3", "ircr"):  # no teacher episodes used
             teachers[key] = teacher_return(config)

@@ -1846,6 +1846,16 @@ def test_plot_table_reads_final_returns_teacher_crossings_and_promotions(tmp_pat
     assert "| Hopper-v5 | SAIL, seeds 1, 2 | 2 | 1050 | 1050 | 500 to 1600 | 500 to 1600 | 0.80x |" in table
     assert f"| Hopper-v5 | SAIL, seeds 6 | 1 | 1600 | 1600 | 1600 |  | {1600 / teacher:.2f}x |" in table
     assert "| SAIL | 3 | 70k, 70k, 70k |" in table  # the method's own table pools every seed
+    # a DAC run that names no commit is older code: a method of its own, out of the first table and <env>.png
+    for name, commit in (("dac-old", None), ("dac-new", "0ee7e3e")):
+        dac = tmp_path / f"Hopper-v5__{name}__1"
+        shutil.copytree(runs[0], dac)
+        config = json.loads((dac / "config.json").read_text()) | {"algo": "dac", "method": "DAC"}
+        (dac / "config.json").write_text(json.dumps(config | ({"commit": commit} if commit else {})))
+        assert main_in_process(plot.main, [str(dac), "--output-dir", str(tmp_path / name)], capsys).returncode == 0
+        table = (tmp_path / name / "results.md").read_text()
+        assert ("| Hopper-v5 | DAC | 1 |" in table) == bool(commit)
+        assert ("| DAC (code not recorded) | 1 |" in table) != bool(commit)
     # the bootstrap interval of the mean: none for one seed, the range for two or three, about the mean +- 1.96
     # standard errors for many, and the same numbers every time
     assert np.isnan(plot.bootstrap_interval([5.0])).all()
