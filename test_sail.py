@@ -1333,10 +1333,11 @@ def test_checkpoint_probe_reports_q_slope_and_d(straight_paper_run, straight_run
     proc, decomposition = run_scripts((probe, str(straight_paper_run)), (probe, str(straight_run)))
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert decomposition.returncode == 0, decomposition.stderr[-3000:]
-    learned = [line for line in decomposition.stdout.splitlines()[-8:] if "transitions" in line]
-    assert learned and all(re.search(r"learned reward -?\d+\.\d+, squared action norm", line) for line in learned)
+    learned = [line for line in decomposition.stdout.splitlines() if "transitions, D's reward" in line]
+    assert learned and all(re.search(r"learned reward -?\d+\.\d+, Q -?\d+\.\d, squared action norm", line)
+                           for line in learned)
     q_line, *d_lines = proc.stdout.splitlines()
-    d_lines, bins = d_lines[:9], d_lines[9:]
+    d_lines, bins, teacher_lines = d_lines[:9], d_lines[9:18], d_lines[18:]
     mean_q, slope, ratio = map(float, re.search(r"mean \|Q\| (\S+), mean slope per action dimension (\S+), "
                                                 r"their ratio (\S+)$", q_line).groups())
     assert mean_q > 0 and slope > 0
@@ -1348,6 +1349,12 @@ def test_checkpoint_probe_reports_q_slope_and_d(straight_paper_run, straight_run
     assert bins[0] == "R_B's last 1000 transitions by observation 0:" and len(bins) == 9
     counts = [int(m.group(1)) for m in (re.search(r": (\d+) transitions, D's reward", line) for line in bins[1:]) if m]
     assert sum(counts) == 1000 and not any("learned reward" in line for line in bins)  # a run without the decomposition
+    # R_E: the demo episode and the promoted ones, the lowest return first: the run's last threshold
+    header, *kept = teacher_lines
+    count = int(re.fullmatch(r"R_E: (\d+) episodes \(return, steps, mean of observation 8\):", header).group(1))
+    returns = [float(line.split(",")[0]) for line in kept]
+    assert len(kept) == count and returns == sorted(returns)
+    assert returns[0] == pytest.approx(float(read_csv(straight_paper_run)[-1]["teacher_threshold"]), abs=0.05)
 
 
 def test_checkpoints_are_read_onto_the_cpu_whatever_the_run_device(tmp_path, monkeypatch):

@@ -14,8 +14,10 @@ observation (by default 8, the forward velocity of HalfCheetah-v5) scaled by 0.7
 with the teacher's actions scaled by 0 to 2 (clipped to the action bounds): how much D's reward
 depends on the action at all. Last, over the last 100k transitions of the self buffer, in 8 equal
 bins of observation --height-index (by default 0, the torso's height on Ant-v5, Hopper-v5 and
-Walker2d-v5): how many there are, D's reward as the critic got it (--reward sail or airl), the learned reward of
---return-decomposition where the run has one, and the squared action norm.
+Walker2d-v5; 5 is Hopper-v5's forward velocity): how many there are, D's reward as the critic got it (--reward
+sail or airl), the learned reward of --return-decomposition where the run has one, the critic's min(Q1, Q2) at the
+actions taken, and the squared action norm. Then what R_E holds: each kept episode's return, length and mean of
+observation --velocity-index, the lowest return first.
 """
 
 import argparse
@@ -103,7 +105,8 @@ if state.get("reward_model") is not None:
     reward_model = RewardModel(obs_dim, act_dim, config["hidden"], learn_action_cost)
     reward_model.load_state_dict(state["reward_model"])
     learned = reward_model(obs, actions, next_obs)
-entry = obs[:, args.height_index]
+q_taken = torch.min(*critic(obs, actions))  # what the critic values the steps that were taken at
+entry = obs[:, args.height_index].contiguous()
 edges = torch.linspace(entry.min().item(), entry.max().item(), 9)
 print(f"R_B's last {len(obs)} transitions by observation {args.height_index}:")
 bins = torch.bucketize(entry, edges[1:-1], right=True)  # 0-7; the top edge falls in the last bin
@@ -115,4 +118,10 @@ for i, (low, high) in enumerate(zip(edges[:-1], edges[1:])):
     print(f"  {low:.2f} to {high:.2f}: {int(inside.sum())} transitions, "
           + (f"D's reward {d_reward[inside].mean().item():.3f}, " if d_reward is not None else "")
           + (f"learned reward {learned[inside].mean().item():.3f}, " if learned is not None else "")
-          + f"squared action norm {actions[inside].pow(2).sum(1).mean().item():.2f}")
+          + f"Q {q_taken[inside].mean().item():.1f}, squared action norm {actions[inside].pow(2).sum(1).mean().item():.2f}")
+
+# What R_E holds now: the demos and the promoted episodes that are left, the lowest return first
+teacher_episodes = sorted(state["teacher_buffer"]["episodes"], key=lambda episode: episode[0])
+print(f"R_E: {len(teacher_episodes)} episodes (return, steps, mean of observation {args.velocity_index}):")
+for episodic_return, (episode_obs, *_) in teacher_episodes:
+    print(f"  {episodic_return:.1f}, {len(episode_obs)}, {episode_obs[:, args.velocity_index].mean().item():.2f}")
