@@ -184,6 +184,10 @@ GRIDS = {
     # these runs show is the result, reported beside seeds 1-5, with no rerun and no change of the defaults on
     # their account. Their runs are named as seeds 1-5's (`learning-actor-cost`, `decide-actor-cost`)
     "confirm": grid(ALL_ENVS, {"sail-dan-cost-actor": sail("SAIL", *OFF_POLICY, *DEFAULTS)}, [6, 7, 8]),
+    # sail.py's defaults for 1M env steps on seeds no decision saw: seeds 6 and 7 are their 300k runs of `confirm`,
+    # continued with --resume --total-timesteps 1000000 (the run folder copied to this grid's runs folder first)
+    "confirm-long": grid(["Walker2d-v5", "HalfCheetah-v5"], {"sail-dan-cost-actor-1M": sail(
+        "SAIL", "--total-timesteps", "1000000", "--threads", "1", *DEFAULTS)}, [6, 7]),
     # the defaults with a teacher worse than standing still (demos/Hopper-v5-weak.npz: 629, where standing for the
     # whole episode earns about 1000): where a change for such teachers starts from; seeds 9 and up, as every decision
     "weak-teacher": grid(["Hopper-v5"], {"sail-weak": sail("SAIL (weak teacher)", *OFF_POLICY, *DEFAULTS, "--demos",
