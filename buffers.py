@@ -98,8 +98,8 @@ class ReplayBuffer:
         return self.gather((self.ptr - back) % self.capacity)
 
     def latest(self, n):
-        """The n most recent transitions (obs, actions, next_obs, terminated): the episode that
-        just ended, for the teacher buffer."""
+        """The n most recent transitions (obs, actions, next_obs, terminated), oldest first: the
+        episode that just ended, for the teacher buffer."""
         obs, actions, _, next_obs, terminated = self.gather(torch.arange(self.ptr - n, self.ptr) % self.capacity)
         return obs, actions, next_obs, terminated
 

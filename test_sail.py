@@ -283,6 +283,9 @@ def test_replay_buffer_samples_only_what_was_added_and_wraps():
     torch.testing.assert_close(terminated, obs[:, 0] % 2)
     recent, *_ = buffer.sample_recent(200, window=3)
     assert set(recent[:, 0].tolist()) == {11, 12, 13}
+    restored = ReplayBuffer(obs_dim=2, act_dim=1, capacity=10)  # as the probes read R_B from a checkpoint
+    restored.load_state_dict(buffer.state_dict())
+    assert restored.latest(5)[0][:, 0].tolist() == [9, 10, 11, 12, 13]  # the newest steps, across the wrap
 
 
 def test_episode_returns_mark_finished_episodes_only_and_wrap():

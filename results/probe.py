@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from buffers import ReplayBuffer  # noqa: E402
 from credit import RewardModel  # noqa: E402
 from demos import default_demo_path, load_demos  # noqa: E402
 from discriminator import Discriminator, shaped_reward  # noqa: E402
@@ -49,6 +50,8 @@ config = json.load(open(os.path.join(args.run_dir, "config.json")))
 state = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"))
 self_obs = state["self_buffer"]["data"][0]
 obs_dim, act_dim = self_obs.shape[1], state["self_buffer"]["data"][1].shape[1]
+self_buffer = ReplayBuffer(obs_dim, act_dim, config["buffer_size"])
+self_buffer.load_state_dict(state["self_buffer"])  # a ring: once full, its newest steps are not its last rows
 disc = Discriminator(obs_dim, act_dim, config["disc_hidden"], config.get("disc_action_norm", False))
 disc.load_state_dict(state["disc"])
 critic = TwinCritic(obs_dim, act_dim, config["hidden"], config.get("critic_layer_norm", False))
@@ -67,7 +70,7 @@ torch.set_grad_enabled(False)
 if config["absorbing"]:
     absorbing = torch.as_tensor(absorbing_state(obs_dim - 1))[None]
     zero = torch.zeros(1, act_dim)
-    recent = self_obs[-20_000:]
+    recent = self_buffer.latest(min(20_000, self_buffer.size))[0]
     print(f"D's reward in the absorbing state: {disc(disc.inputs(absorbing, zero)).item():.2f}")
     print(f"Q(absorbing, 0) {torch.min(*critic(absorbing, zero)).item():.1f}, "
           f"Q(absorbing, actor) {torch.min(*critic(absorbing, actor(absorbing))).item():.1f}, "
@@ -95,8 +98,7 @@ for scale in (0.0, 0.5, 1.0, 1.5, 2.0):
     print(f"D on the teacher's states, actions x {scale}: {d:.3f}")
 
 # Where in the state the rewards go: D's reward and the learned one, by bins of one observation entry
-recent = slice(max(0, len(self_obs) - 100_000), len(self_obs))
-obs, actions, next_obs = (state["self_buffer"]["data"][i][recent] for i in (0, 1, 3))
+obs, actions, next_obs, _ = self_buffer.latest(min(100_000, self_buffer.size))
 d_reward = shaped_reward(disc, obs, actions, config["reward"]) if config["reward"] in ("sail", "airl") else None
 learned = None
 if state.get("reward_model") is not None:
