@@ -78,9 +78,10 @@ def load_demos(path, env_id, obs_dim, act_dim, num_demos=None):
     n = len(data["actions"])
     if file_env != env_id:
         raise ConfigError(f"demo file {path} holds demonstrations for {file_env}, not {env_id}")
-    if data["observations"].ndim != 2 or data["observations"].shape[1] != obs_dim:
-        raise ConfigError(f"demo file {path}: observations have shape {data['observations'].shape}, "
-                          f"{env_id} has {obs_dim}-dim observations")
+    for key in ("observations", "next_observations"):
+        if data[key].ndim != 2 or data[key].shape[1] != obs_dim:
+            raise ConfigError(f"demo file {path}: {key} have shape {data[key].shape}, "
+                              f"{env_id} has {obs_dim}-dim observations")
     if data["actions"].ndim != 2 or data["actions"].shape[1] != act_dim:
         raise ConfigError(f"demo file {path}: actions have shape {data['actions'].shape}, "
                           f"{env_id} has {act_dim}-dim actions")
@@ -200,9 +201,12 @@ def load_teacher_buffer(path, env_id, env, num_demos, capacity, time_feature, ab
     features (time, absorbing state) that `env`'s wrappers add online."""
     raw_obs_dim = env.observation_space.shape[0] - int(time_feature) - int(absorbing)
     teacher_buffer = TeacherBuffer(capacity)
-    for episode in load_demos(path, env_id, raw_obs_dim, env.action_space.shape[0], num_demos):
-        if len(episode["actions"]) > capacity:
-            raise ConfigError(f"--teacher-capacity {capacity} is smaller than a demo episode")
-        teacher_buffer.add_episode(episode["episodic_return"],
-                                   *add_features(episode, env.max_episode_steps, time_feature, absorbing))
+    featured = [(episode["episodic_return"], add_features(episode, env.max_episode_steps, time_feature, absorbing))
+                for episode in load_demos(path, env_id, raw_obs_dim, env.action_space.shape[0], num_demos)]
+    demo_steps = sum(len(data[0]) for _, data in featured)
+    if demo_steps > capacity:  # R_E would drop demos as it loads them
+        raise ConfigError(f"--teacher-capacity {capacity} is smaller than the {len(featured)} demo episodes "
+                          f"({demo_steps} transitions)")
+    for episodic_return, data in featured:
+        teacher_buffer.add_episode(episodic_return, *data)
     return teacher_buffer

@@ -40,7 +40,7 @@ def parse_args(argv=None):
 
 
 def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0):
-    """Plays `episodes` episodes of RUN_DIR's saved actor (model.pt, else checkpoint.pt) on an env
+    """Plays `episodes` episodes of RUN_DIR's saved actor (the newer of model.pt and checkpoint.pt) on an env
     seeded with `seed`; prints the return and length of each, then their mean. With `video` (a .gif
     or .mp4 path) the episodes are rendered headless into it, one after another."""
     if video is not None:
@@ -53,10 +53,10 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0):
     if script not in ("sail.py", "bc.py", "make_demos.py"):
         raise ConfigError(f"{run_dir}: a run of {script}; evaluate.py plays the actors of sail.py, bc.py and "
                           "make_demos.py --save-teacher")
-    path = next((p for p in (os.path.join(run_dir, n) for n in ("model.pt", "checkpoint.pt")) if os.path.isfile(p)),
-                None)
-    if path is None:
+    saved_files = [p for p in (os.path.join(run_dir, n) for n in ("model.pt", "checkpoint.pt")) if os.path.isfile(p)]
+    if not saved_files:
         raise ConfigError(f"{run_dir}: no model.pt or checkpoint.pt there")
+    path = max(saved_files, key=os.path.getmtime)  # a stopped run resumed since: its checkpoint is newer than model.pt
     saved = plumbing.load_checkpoint(path)  # on the CPU, also a run made with --device cuda
     torch.set_num_threads(threads)
     try:

@@ -15,10 +15,9 @@ Algorithm 1 of the paper, as the loop in `train` runs it:
         update the critic by Eq. (7) and the actor by Eq. (8), on batches drawn from
             alpha R_E + (1 - alpha) R_B, with the reward r'(s, a) = -log(1 - D(s, a))
 
-The paper's ablations are flags (--fixed-alpha, --alpha 0, --no-adaptation, --disc-negatives
-recent); DAC, TD3 on the sparse reward, IRCR and RRD are presets of the same loop (--algo).
-`--algo sail-paper` is the paper's SAIL exactly. The defaults add six things, each a flag that
-turns it off, each using only what the sparse env gives at an episode's end:
+The paper's ablations are flags (--fixed-alpha, --alpha 0, --no-adaptation, --disc-negatives recent);
+DAC, TD3 on the sparse reward, IRCR and RRD are presets (--algo); `--algo sail-paper` is the paper's SAIL
+exactly. The defaults add six things, each a flag, each using only what the sparse env gives at episode ends:
 - return bonus (--return-bonus, credit.py): r' + the episode's scaled return (step 4);
 - return decomposition (--return-decomposition, credit.py): r' + a learned per-step reward (step 4);
 - learned action cost (--action-cost): c ||a||^2 in that reward and in the actor's loss (step 4);
@@ -172,8 +171,9 @@ def check_args(p, args):
         p.error("--buffer-size must hold at least one whole episode (1001 transitions)")
     if args.eval_freq > args.total_timesteps and not args.resume:
         p.error(f"--eval-freq {args.eval_freq} is more than --total-timesteps {args.total_timesteps}: no progress.csv")
-    if args.device == "cuda" and not torch.cuda.is_available():
-        p.error("--device cuda: no CUDA device is available")
+    if args.absorbing and (args.reward in ("env", "none") or args.return_bonus > 0 or args.return_decomposition > 0):
+        p.error("--absorbing counts its self-loop's reward forever, meant for D's (DAC): it needs --reward sail "
+                "or airl, --return-bonus 0 and --return-decomposition 0")
 
 
 def method_name(args):
@@ -236,7 +236,7 @@ class LoopState:
 
 def build(args, device, use_demos):
     """What a run's checkpoint holds, each part with state_dict / load_state_dict, seeded: both envs,
-    R_E (the demos), R_B, the TD3 agent, D, the reward model and the RNGs."""
+    R_E (the demos; on --resume, the checkpoint's), R_B, the TD3 agent, D, the reward model and the RNGs."""
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     env = make_env(args.env, args.seed, time_feature=args.time_feature, absorbing=args.absorbing)
@@ -244,7 +244,7 @@ def build(args, device, use_demos):
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     teacher_buffer = (load_teacher_buffer(args.demos or default_demo_path(args.env), args.env, env, args.num_demos,
                                           args.teacher_capacity, args.time_feature, args.absorbing)
-                      if use_demos else TeacherBuffer(args.teacher_capacity))
+                      if use_demos and not args.resume else TeacherBuffer(args.teacher_capacity))
     agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidden=args.hidden, lr=args.lr,
                 gamma=args.gamma, tau=args.tau, policy_noise=args.policy_noise, noise_clip=args.noise_clip,
                 policy_delay=args.policy_delay, device=device, critic_layer_norm=args.critic_layer_norm)
@@ -286,8 +286,9 @@ def start(args, parts, device):
 def train(args):
     if args.resume:
         args = plumbing.resume_config(args.resume, args, args.given, RESUMABLE, "sail.py")
-    device = torch.device("cuda" if args.device == "cuda" or (args.device == "auto" and torch.cuda.is_available())
-                          else "cpu")
+    if args.device == "cuda" and not torch.cuda.is_available():  # also a run made on a GPU, resumed here
+        raise plumbing.ConfigError("--device cuda: no CUDA device is available (--device cpu runs on the CPU)")
+    device = torch.device("cuda" if args.device != "cpu" and torch.cuda.is_available() else "cpu")
     use_demos = args.reward in ("sail", "airl")  # D's reward needs R_E; the env's, IRCR's and RRD's do not
     parts = build(args, device, use_demos)
     agent, disc, teacher_buffer, self_buffer = (parts[k] for k in ("agent", "disc", "teacher_buffer", "self_buffer"))

@@ -401,6 +401,12 @@ def test_each_bad_demo_file_gives_a_clear_error(tmp_path):
         load_demos(path, "Walker2d-v5", 17, 6)
     with pytest.raises(ConfigError, match="17-dim observations"):
         load_demos(path, "Hopper-v5", 17, 3)
+    wide = dict(np.load(path))
+    wide["next_observations"] = np.pad(wide["next_observations"], ((0, 0), (0, 1)))  # would fail 10k steps later
+    np.savez(path, **wide)
+    with pytest.raises(ConfigError, match="next_observations have shape"):
+        load_demos(path, "Hopper-v5", 11, 3)
+    save_demos(path, recorded_episodes(), "Hopper-v5")
     with pytest.raises(ConfigError, match="3 episodes, 4 were asked"):
         load_demos(path, "Hopper-v5", 11, 3, num_demos=4)
     with open(path, "r+b") as f:  # corrupt: truncated in the middle
@@ -1386,6 +1392,25 @@ def test_checkpoints_are_read_onto_the_cpu_whatever_the_run_device(tmp_path, mon
     assert saved["rngs"]["numpy"] == expected_state
 
 
+def test_resume_needs_neither_the_demo_file_nor_the_device_the_run_was_made_with(tmp_path, straight_run, capsys,
+                                                                                monkeypatch):
+    """R_E comes from the checkpoint, so a resumed run does not read the demo file again (it may have moved);
+    a run made on a GPU, resumed where there is none, is one line that names the way out."""
+    import shutil
+    import sail
+    run = shutil.copytree(straight_run, tmp_path / "run")
+    config = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps(config | {"demos": str(tmp_path / "moved.npz")}))
+    proc = main_in_process(sail.main, ["--resume", str(run)], capsys)  # got past the demos, to the finished run
+    assert_one_line_error(proc)
+    assert "has finished" in proc.stderr
+    (run / "config.json").write_text(json.dumps(config | {"device": "cuda"}))
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    proc = main_in_process(sail.main, ["--resume", str(run), "--total-timesteps", "5000"], capsys)
+    assert_one_line_error(proc)
+    assert "no CUDA device" in proc.stderr and "--device cpu" in proc.stderr
+
+
 def test_evaluate_runs_the_saved_actor_from_model_or_checkpoint(tmp_path, straight_run, capsys):
     import shutil
     run = shutil.copytree(straight_run, tmp_path / "run")  # with model.pt (every run's) and checkpoint.pt
@@ -1473,6 +1498,9 @@ def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos, caps
                  ["--hidden", "0", *out],
                  ["--eval-freq", "5000", "--total-timesteps", "1000", "--learning-starts", "100", *out],
                  ["--return-decomposition", "0", "--action-cost", "reward", *out],
+                 ["--env", "Hopper-v5", "--demos", poor_hopper_demos, "--num-demos", "4", "--teacher-capacity", "20",
+                  *out],  # R_E would drop demos as it loads them
+                 ["--absorbing", *out], ["--algo", "td3", "--absorbing", *out],  # a reward repeated forever
                  ["--seed", "-1", *out], ["--seed", str(2**32), *out],  # numpy, gymnasium or torch would refuse it
                  ["--lr", "inf", *out],  # would only show up as a diverged loss
                  ["--threads", "100000", *out],  # torch's thread pools would fail to start: a crash
@@ -2036,6 +2064,13 @@ def test_grid_runs_through_gnu_parallel_resumes_and_maps_slurm_tasks(tmp_path, c
     proc = run_script(grid, "run", str(tmp_path / "other"), "r", "sail.py", *flags)
     assert proc.returncode == 0 and "--resume" in proc.stdout
     assert [int(r["global_step"]) for r in read_csv(tmp_path / "other" / "r")] == [200, 400]
+    # BC has no env steps and no checkpoint: stopped after its halfway row it is not finished, but begun again
+    bc = tmp_path / "bc"
+    bc.mkdir()
+    (bc / "progress.csv").write_text("global_step,eval_return\n0,10.0\n")
+    assert not grid_module.finished(str(bc), None)
+    (bc / "model.pt").write_bytes(b"")
+    assert grid_module.finished(str(bc), None)
 
 
 def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
@@ -2100,7 +2135,6 @@ def test_a_run_folder_in_use_refuses_a_second_process_and_a_resume_says_where_it
     """A run folder is locked by the process that runs it (an OS lock, gone with the process): a second
     --resume of it is one line and writes nothing; once the lock is gone the same --resume goes on."""
     import fcntl
-    import json
     import shutil
     run = tmp_path / "run"
     shutil.copytree(straight_run, run)
@@ -2118,7 +2152,6 @@ def test_a_run_folder_in_use_refuses_a_second_process_and_a_resume_says_where_it
 
 
 def test_resuming_a_finished_run_or_another_scripts_run_is_one_line(tmp_path, straight_run):
-    import json
     import shutil
     finished, other = tmp_path / "finished", tmp_path / "other"
     shutil.copytree(straight_run, finished)

@@ -212,13 +212,16 @@ def commands(name, runs_dir):
 
 
 def finished(run_dir, total):
-    """A run is finished when its CSV reaches its total steps (BC, with no env steps: has a CSV)."""
+    """A run is finished when its CSV reaches its total steps; BC, with no env steps and no checkpoint, when it has
+    written model.pt at its end (its CSV gets a row halfway)."""
+    if total is None:
+        return os.path.isfile(os.path.join(run_dir, "model.pt"))
     path = os.path.join(run_dir, "progress.csv")
     if not os.path.isfile(path):
         return False
     with open(path) as f:
         rows = list(csv.DictReader(f))
-    return bool(rows) and (total is None or float(rows[-1]["global_step"]) >= total)
+    return bool(rows) and float(rows[-1]["global_step"]) >= total
 
 
 def run(runs_dir, name, script, flags):
