@@ -455,6 +455,11 @@ def resume_config(run_dir, args, given, changeable, script):
         flags = ", ".join("--" + name.replace("_", "-") for name in ignored)
         allowed = ", ".join("--" + name.replace("_", "-") for name in changeable)
         raise ConfigError(f"--resume keeps the run's saved flags; {flags} cannot change (only {allowed} can)")
+    # a flag today's parser has and the saved run lacks (older code) would take today's default: refused
+    missing = sorted(set(vars(args)) - set(config) - {"given", "resume", "output_dir", *changeable})
+    if missing:
+        flags = ", ".join("--" + name.replace("_", "-") for name in missing)
+        raise ConfigError(f"--resume {run_dir}: its config.json has no {flags} (a run of older code); start it anew")
     saved = {k: v for k, v in config.items() if k in vars(args)}  # the command line, the commit: not flags
     anew = {name: getattr(args, name) for name in changeable if name in given}
     return argparse.Namespace(**(vars(args) | saved | anew | {"resume": run_dir}))

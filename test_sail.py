@@ -1732,6 +1732,11 @@ def test_a_resumed_run_keeps_its_saved_flags_over_todays_defaults(tmp_path):
     assert (args.return_bonus, args.action_cost) == (1.0, "reward-and-actor")  # today's defaults
     resumed = plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py")
     assert (resumed.return_bonus, resumed.action_cost, resumed.total_timesteps) == (2.0, "reward", 600)
+    # a run of older code, whose config lacks a flag of today's, would silently take today's default
+    older = {k: v for k, v in saved.items() if k not in ("given", "disc_negatives")}
+    (run / "config.json").write_text(json.dumps(older))
+    with pytest.raises(ConfigError, match="has no --disc-negatives"):
+        plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py")
 
 
 def test_loading_refuses_a_file_that_would_run_code(tmp_path, poor_hopper_demos, straight_run):
