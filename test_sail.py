@@ -27,7 +27,7 @@ torch.set_num_threads(1)
 # the shipped demo files of each env, demos/<name>.npz, and their teachers' return bands (the -weak ones: below
 # what standing still for 1000 steps earns)
 SHIPPED = {"Hopper-v5": {"Hopper-v5": (1000, 1500), "Hopper-v5-weak": (600, 850)},
-           "Walker2d-v5": {"Walker2d-v5": (1000, 1700)}, "HalfCheetah-v5": {"HalfCheetah-v5": (4000, 6000)},
+           "Walker2d-v5": {"Walker2d-v5": (1000, 1700), "Walker2d-v5-weak": (400, 850)}, "HalfCheetah-v5": {"HalfCheetah-v5": (4000, 6000)},
            "Swimmer-v5": {"Swimmer-v5": (40, 120)}, "Ant-v5": {"Ant-v5": (1200, 1800), "Ant-v5-weak": (600, 850)}}
 
 

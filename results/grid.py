@@ -188,10 +188,10 @@ GRIDS = {
     # continued with --resume --total-timesteps 1000000 (the run folder copied to this grid's runs folder first)
     "confirm-long": grid(["Walker2d-v5", "HalfCheetah-v5"], {"sail-dan-cost-actor-1M": sail(
         "SAIL", "--total-timesteps", "1000000", "--threads", "1", *DEFAULTS)}, [6, 7]),
-    # the defaults with a teacher worse than standing still (demos/<env>-weak.npz; Hopper 629, Ant 767, where standing
-    # for the whole episode earns about 1000 and 980): where a change for such teachers starts from; seeds 9 and up,
-    # as every decision
-    "weak-teacher": [line for env in ["Hopper-v5", "Ant-v5"] for line in grid(
+    # the defaults with a teacher worse than standing still (demos/<env>-weak.npz; Hopper 629, Walker2d 505, Ant 767,
+    # where standing for the whole episode earns about 1000, 1000 and 980): where a change for such teachers starts
+    # from; seeds 9 and up, as every decision
+    "weak-teacher": [line for env in ["Hopper-v5", "Ant-v5", "Walker2d-v5"] for line in grid(
         [env], {"sail-weak": sail("SAIL (weak teacher)", *OFF_POLICY, *DEFAULTS, "--demos", f"demos/{env}-weak.npz")},
         [9, 10, 11])],
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
