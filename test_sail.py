@@ -23,11 +23,11 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 # the tests that train networks in this process use small ones, which one thread runs as fast as
 # two, and two threads would contend with the single-threaded runs the suite starts beside them
 torch.set_num_threads(1)
-# the demo files committed in demos/ and their teacher return bands (make_demos.BANDS)
 # the shipped demo files of each env, demos/<name>.npz, and their teachers' return bands (the -weak ones: below
 # what standing still for 1000 steps earns)
 SHIPPED = {"Hopper-v5": {"Hopper-v5": (1000, 1500), "Hopper-v5-weak": (600, 850)},
-           "Walker2d-v5": {"Walker2d-v5": (1000, 1700), "Walker2d-v5-weak": (400, 850)}, "HalfCheetah-v5": {"HalfCheetah-v5": (4000, 6000)},
+           "Walker2d-v5": {"Walker2d-v5": (1000, 1700), "Walker2d-v5-weak": (400, 850)},
+           "HalfCheetah-v5": {"HalfCheetah-v5": (4000, 6000)},
            "Swimmer-v5": {"Swimmer-v5": (40, 120)}, "Ant-v5": {"Ant-v5": (1200, 1800), "Ant-v5-weak": (600, 850)}}
 
 
