@@ -1313,15 +1313,20 @@ def test_early_end_probe_on_ant_shows_the_reward_by_steps_to_a_flip_and_the_rest
 
 def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     probe = os.path.join("results", "early_ends.py")
-    proc, missing = run_scripts((probe, str(straight_run), "--episodes", "3"), (probe, str(tmp_path)))
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    proc, missing, resting = run_scripts((probe, str(straight_run), "--episodes", "3"), (probe, str(tmp_path)),
+                                         (probe, str(straight_run), "--episodes", "2", "--zero-start", "1000"))
+    assert proc.returncode == 0 and resting.returncode == 0, proc.stderr[-3000:] + resting.stderr[-3000:]
+    # --zero-start N: the zero action for each episode's first N steps, here for all of them
+    assert "Hopper-v5, actor (the zero action for the first 1000 steps): mean return" in resting.stdout
+    assert "squared action norm per step: actor 0.000 (0.000 in the first 20 steps)" in resting.stdout
     lines = proc.stdout.splitlines()
     episodes = [line for line in lines if line.startswith("episode ")]
     assert len(episodes) == 3 and all("ended early" in line for line in episodes)  # a barely trained hopper falls
     assert all(re.search(r"\(forward reward -?\d+, control cost \d+\)", line) for line in episodes)
     summary = lines.index(next(line for line in lines if line.startswith("Hopper-v5, actor:")))
     assert "3 ended early" in lines[summary] and lines[summary + 1].startswith("teacher (1 episodes): first entry")
-    assert lines[summary + 2].startswith("squared action norm per step: actor ")  # and the control cost it makes
+    assert re.match(r"squared action norm per step: actor \d+\.\d{3} \(\d+\.\d{3} in the first 20 steps\)",
+                    lines[summary + 2])  # and the control cost it makes
     assert "control cost weight 0.001:" in lines[summary + 2]  # Hopper-v5's
     training = lines[summary + 4]  # R_B's episodes: the straight run's 1000 steps, nearly all falls
     assert lines[summary + 3].startswith("training episodes (R_B") and training.startswith("  0-50000: ")

@@ -1,6 +1,6 @@
 """The early-end probe: which of a run's evaluation episodes end before the time limit, and how.
 
-    python results/early_ends.py RUN_DIR [--episodes 20] [--seed 1000] [--target] [--rest-when-upside-down]
+    python results/early_ends.py RUN_DIR [--episodes 20] [--seed 1000] [--target] [--rest-when-upside-down] [--zero-start N]
 
 RUN_DIR is a sail.py run folder (config.json and checkpoint.pt). Plays --episodes episodes of
 its deterministic actor (--target: its Polyak-averaged target actor) and prints, for each, the
@@ -24,7 +24,8 @@ reward (D's reward, the return bonus, the learned reward of --return-decompositi
 unit) and its min(Q1, Q2) at the actor's actions and at the zero action, by steps to the first step upside down in R_B's
 last 100k transitions; and with --rest-when-upside-down the probe's actor acts as trained until the
 ant is upside down and then takes the zero action: what a turned-over episode would score if the
-actor did not go on spending actions there.
+actor did not go on spending actions there; with --zero-start N it takes the zero action for each
+episode's first N steps (whether the early ends come from how the actor starts).
 """
 
 import argparse
@@ -51,6 +52,7 @@ p.add_argument("--target", action="store_true", help="play the target actor inst
 p.add_argument("--window", type=positive_int, default=50_000, help="env steps per line of the training episodes' summary")
 p.add_argument("--rest-when-upside-down", action="store_true",
                help="Ant-v5: the zero action from the first step upside down to the episode's end")
+p.add_argument("--zero-start", type=int, default=0, metavar="N", help="the zero action for each episode's first N steps")
 args = p.parse_args()
 for name in ("config.json", "checkpoint.pt"):
     if not os.path.isfile(os.path.join(args.run_dir, name)):
@@ -78,7 +80,7 @@ def upside_down(states):
 
 # the env's control cost per step is its weight times the squared action norm (gymnasium's v5 locomotion envs)
 weight = getattr(unwrapped, "_ctrl_cost_weight", float("nan"))
-returns, early, action_cost = [], 0, []
+returns, early, action_cost, start_cost = [], 0, [], []
 for i in range(args.episodes):
     positions = []  # the body's x position as each action is chosen
 
@@ -86,6 +88,8 @@ for i in range(args.episodes):
 
     def policy_noting_x(obs):
         positions.append(float(unwrapped.data.qpos[0]))
+        if len(positions) <= args.zero_start:
+            return np.zeros(env.action_space.shape, env.action_space.dtype)
         if args.rest_when_upside_down:
             turned[0] = turned[0] or bool(upside_down(obs[None])[0])
             if turned[0]:
@@ -102,6 +106,7 @@ for i in range(args.episodes):
     ended_early = len(episode["actions"]) < env.max_episode_steps
     returns.append(episode["episodic_return"])
     action_cost.append((episode["actions"] ** 2).sum(-1).mean())
+    start_cost.append((episode["actions"][:20] ** 2).sum(-1).mean())
     early += ended_early
     ending = f"ended early, first entry {height[-1]:.2f} at the end" if ended_early else "ran to the limit"
     if ant:
@@ -110,7 +115,8 @@ for i in range(args.episodes):
           f"{weight * (episode['actions'] ** 2).sum():.0f}), length {len(episode['actions'])}, first entry "
           f"{height.min():.2f}-{height.max():.2f}, {ending}")
 print(f"{config['env']}, {'target actor' if args.target else 'actor'}"
-      f"{' (the zero action once upside down)' if args.rest_when_upside_down else ''}: mean return {np.mean(returns):.1f} over "
+      f"{' (the zero action once upside down)' if args.rest_when_upside_down else ''}"
+      f"{f' (the zero action for the first {args.zero_start} steps)' if args.zero_start else ''}: mean return {np.mean(returns):.1f} over "
       f"{args.episodes} episodes, {early} ended early (env seed {args.seed})")
 with np.load(config.get("demos") or default_demo_path(config["env"]), allow_pickle=False) as demos:
     ends = np.cumsum(demos["episode_lengths"])[:config["num_demos"]]
@@ -118,7 +124,8 @@ with np.load(config.get("demos") or default_demo_path(config["env"]), allow_pick
     print(f"teacher ({config['num_demos']} episodes): first entry {first.min():.2f}-{first.max():.2f}, "
           f"lengths {', '.join(str(n) for n in demos['episode_lengths'][:config['num_demos']])}")
     teacher_cost = (demos["actions"][:ends[-1]] ** 2).sum(-1).mean()
-print(f"squared action norm per step: actor {np.mean(action_cost):.3f}, teacher {teacher_cost:.3f}; control cost "
+print(f"squared action norm per step: actor {np.mean(action_cost):.3f} ({np.mean(start_cost):.3f} in the first 20 "
+      f"steps), teacher {teacher_cost:.3f}; control cost "
       f"weight {weight}: {weight * np.mean(action_cost) * env.max_episode_steps:.0f} against "
       f"{weight * teacher_cost * env.max_episode_steps:.0f} over {env.max_episode_steps} steps")
 
