@@ -1348,8 +1348,12 @@ def test_checkpoint_probe_reports_q_slope_and_d(straight_paper_run, straight_run
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert decomposition.returncode == 0, decomposition.stderr[-3000:]
     learned = [line for line in decomposition.stdout.splitlines() if "transitions, D's reward" in line]
-    assert learned and all(re.search(r"learned reward -?\d+\.\d+, Q -?\d+\.\d, squared action norm", line)
-                           for line in learned)
+    parsed = [re.search(r"D's reward (-?\d+\.\d+), learned reward (-?\d+\.\d+), critic's reward (-?\d+\.\d+), "
+                        r"Q -?\d+\.\d, squared action norm", line) for line in learned]
+    assert learned and all(parsed)
+    # the critic's reward is D's plus the learned one over one unit, the same in every bin
+    per_unit = [(float(m[3]) - float(m[1])) / float(m[2]) for m in parsed if abs(float(m[2])) >= 0.1]
+    assert per_unit and all(u > 0 for u in per_unit) and max(per_unit) == pytest.approx(min(per_unit), rel=0.1)
     q_line, *d_lines = proc.stdout.splitlines()
     d_lines, bins, teacher_lines = d_lines[:9], d_lines[9:18], d_lines[18:]
     mean_q, slope, ratio = map(float, re.search(r"mean \|Q\| (\S+), mean slope per action dimension (\S+), "

@@ -16,7 +16,8 @@ depends on the action at all. Last, over the last 100k transitions of the self b
 bins of observation --height-index (by default 0, the torso's height on Ant-v5, Hopper-v5 and
 Walker2d-v5; 5 is Hopper-v5's forward velocity): how many there are, D's reward as the critic got it (--reward
 sail or airl), the learned reward of --return-decomposition where the run has one, the critic's min(Q1, Q2) at the
-actions taken, and the squared action norm. Then what R_E holds: each kept episode's return, length and mean of
+actions taken, the critic's whole reward (D's plus the learned one over its unit, as sail.py's update adds
+them; without a --return-bonus), and the squared action norm. Then what R_E holds: each kept episode's return, length and mean of
 observation --velocity-index, the lowest return first.
 """
 
@@ -31,7 +32,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from buffers import ReplayBuffer  # noqa: E402
-from credit import RewardModel  # noqa: E402
+from credit import RewardModel, decomposition_unit  # noqa: E402
 from demos import default_demo_path, load_demos  # noqa: E402
 from discriminator import Discriminator, shaped_reward  # noqa: E402
 from envs import absorbing_state, add_features  # noqa: E402
@@ -107,6 +108,10 @@ if state.get("reward_model") is not None:
     reward_model = RewardModel(obs_dim, act_dim, config["hidden"], learn_action_cost)
     reward_model.load_state_dict(state["reward_model"])
     learned = reward_model(obs, actions, next_obs)
+    unit = decomposition_unit(config.get("decomposition_unit", "range"), state["loop"]["return_range"],
+                              state["loop"]["rate_range"], gym.spec(config["env"]).max_episode_steps or 1000)
+    # the reward the critic is given, as sail.py's update makes it (D's, or none, plus the learned one in its unit)
+    critic_reward = (d_reward if d_reward is not None else 0.0) + config["return_decomposition"] * learned / unit
 q_taken = torch.min(*critic(obs, actions))  # what the critic values the steps that were taken at
 entry = obs[:, args.height_index].contiguous()
 edges = torch.linspace(entry.min().item(), entry.max().item(), 9)
@@ -119,7 +124,8 @@ for i, (low, high) in enumerate(zip(edges[:-1], edges[1:])):
         continue
     print(f"  {low:.2f} to {high:.2f}: {int(inside.sum())} transitions, "
           + (f"D's reward {d_reward[inside].mean().item():.3f}, " if d_reward is not None else "")
-          + (f"learned reward {learned[inside].mean().item():.3f}, " if learned is not None else "")
+          + (f"learned reward {learned[inside].mean().item():.3f}, critic's reward "
+             f"{critic_reward[inside].mean().item():.3f}, " if learned is not None else "")
           + f"Q {q_taken[inside].mean().item():.1f}, squared action norm {actions[inside].pow(2).sum(1).mean().item():.2f}")
 
 # What R_E holds now: the demos and the promoted episodes that are left, the lowest return first
