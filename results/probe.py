@@ -15,9 +15,9 @@ with the teacher's actions scaled by 0 to 2 (clipped to the action bounds): how 
 depends on the action at all. Last, over the last 100k transitions of the self buffer, in 8 equal
 bins of observation --height-index (by default 0, the torso's height on Ant-v5, Hopper-v5 and
 Walker2d-v5; 5 is Hopper-v5's forward velocity): how many there are, D's reward as the critic got it (--reward
-sail or airl), the learned reward of --return-decomposition where the run has one, the critic's min(Q1, Q2) at the
-actions taken, the critic's whole reward (D's plus the learned one over its unit, as sail.py's update adds
-them; without a --return-bonus), and the squared action norm. Then what R_E holds: each kept episode's return, length and mean of
+sail or airl), the learned reward of --return-decomposition where the run has one and the critic's whole reward
+(D's plus the learned one over its unit, as sail.py's update adds them; without a --return-bonus), the critic's
+min(Q1, Q2) at the actions taken, and the squared action norm. Then what R_E holds: each kept episode's return, length and mean of
 observation --velocity-index, the lowest return first.
 """
 
