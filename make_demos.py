@@ -11,7 +11,8 @@ HalfCheetah ~5650, Swimmer ~121, Ant ~1130), clearly below what TD3 reaches with
 
 The demo file goes to demos/<env>.npz beside this script (where sail.py looks for it); an
 existing file is only replaced with --force. Ctrl-C or SIGTERM stops the teacher cleanly after
-a checkpoint (with --checkpoint), which a later run with the same --checkpoint continues.
+a checkpoint (with --checkpoint), which a later run with the same flags continues (a checkpoint
+written with other flags is refused).
 """
 
 import os
@@ -43,6 +44,8 @@ BANDS = {
     "Swimmer-v5": (40, 120),
     "Ant-v5": (1200, 1800),
 }
+# flags a run continued from --checkpoint may give anew: where its outputs go, and its threads
+RESUMABLE = ("output", "force", "save_teacher", "minari", "checkpoint", "checkpoint_freq", "threads")
 
 
 def parse_args(argv=None):
@@ -156,13 +159,22 @@ def train(args):
     first_step = 1
     parts = {"agent": agent, "buffer": buffer, "env": EnvState(env), "eval_env": EnvState(eval_env),
              "rng": plumbing.RNGs(rng)}
+    # what the teacher's training depends on; the rest says where outputs go, or how fast it runs
+    flags = {k: list(v) if isinstance(v, tuple) else v for k, v in vars(args).items() if k not in RESUMABLE}
     if args.checkpoint and os.path.isfile(args.checkpoint):
+        # the flags first: another run's networks and buffer may not even fit this run's
+        saved = plumbing.load_checkpoint(args.checkpoint).get("flags", flags)  # older checkpoints lack them
+        changed = [k for k in saved if flags.get(k) != saved[k]]
+        if changed:
+            raise ConfigError(f"--checkpoint {args.checkpoint} was written with other flags ("
+                              + ", ".join(f"{plumbing.as_flag(k, saved[k])}, not {plumbing.as_flag(k, flags.get(k))}"
+                                          for k in changed) + "): give the same flags, or another --checkpoint")
         state = plumbing.load_checkpoint(args.checkpoint, parts)
         obs, first_step = state["obs"], state["global_step"] + 1
         print(f"resumed from {args.checkpoint} at step {state['global_step']}", flush=True)
 
     def save_checkpoint(global_step):
-        plumbing.save_checkpoint(args.checkpoint, parts, obs=obs, global_step=global_step)
+        plumbing.save_checkpoint(args.checkpoint, parts, obs=obs, global_step=global_step, flags=flags)
 
     start = time.time()
     with plumbing.StopRequest() as stop:

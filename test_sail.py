@@ -665,6 +665,28 @@ def test_make_demos_unreadable_checkpoint_is_one_line(tmp_path, capsys):
     assert not (tmp_path / "out.npz").exists()
 
 
+def test_make_demos_refuses_a_checkpoint_written_with_other_flags(tmp_path, capsys):
+    """Continuing another run's checkpoint (another seed, env or step size) would train neither run:
+    one error line naming the flags, before any training; flags that only say where outputs go may change."""
+    import make_demos
+    checkpoint = tmp_path / "teacher.pt"
+
+    def run(*flags):
+        return main_in_process(make_demos.main, [
+            "--env", "Hopper-v5", "--total-timesteps", "600", "--learning-starts", "500", "--eval-freq", "500",
+            "--eval-episodes", "1", "--hidden", "16", "16", "--band", "1e6", "1e7", "--checkpoint", str(checkpoint),
+            "--checkpoint-freq", "500", *flags], capsys)
+    first = run("--output", str(tmp_path / "a.npz"))
+    assert first.returncode == 1 and "did not reach the band" in first.stderr  # after a checkpoint at step 500
+    written = checkpoint.stat().st_mtime_ns
+    other = run("--output", str(tmp_path / "b.npz"), "--seed", "1", "--lr", "0.001")
+    assert_one_line_error(other)
+    assert "--seed 0, not --seed 1" in other.stderr and "--lr 0.0003, not --lr 0.001" in other.stderr
+    assert checkpoint.stat().st_mtime_ns == written
+    same = run("--output", str(tmp_path / "c.npz"), "--threads", "2")  # the same run, elsewhere, faster
+    assert same.returncode == 1 and "resumed from" in same.stdout and "did not reach the band" in same.stderr
+
+
 def test_make_demos_checks_its_outputs_before_training_and_never_overwrites_without_force(tmp_path):
     import make_demos
     from demos import default_demo_path
