@@ -161,15 +161,18 @@ def train(args):
              "rng": plumbing.RNGs(rng)}
     # what the teacher's training depends on; the rest says where outputs go, or how fast it runs
     flags = {k: list(v) if isinstance(v, tuple) else v for k, v in vars(args).items() if k not in RESUMABLE}
-    if args.checkpoint and os.path.isfile(args.checkpoint):
-        # the flags first: another run's networks and buffer may not even fit this run's
-        saved = plumbing.load_checkpoint(args.checkpoint).get("flags", flags)  # older checkpoints lack them
+
+    def same_flags(state):
+        """Before the parts are loaded: another run's networks and buffer may not even fit this run's."""
+        saved = state.get("flags", flags)  # older checkpoints lack them
         changed = [k for k in saved if flags.get(k) != saved[k]]
         if changed:
             raise ConfigError(f"--checkpoint {args.checkpoint} was written with other flags ("
                               + ", ".join(f"{plumbing.as_flag(k, saved[k])}, not {plumbing.as_flag(k, flags.get(k))}"
                                           for k in changed) + "): give the same flags, or another --checkpoint")
-        state = plumbing.load_checkpoint(args.checkpoint, parts)
+
+    if args.checkpoint and os.path.isfile(args.checkpoint):
+        state = plumbing.load_checkpoint(args.checkpoint, parts, check=same_flags)
         obs, first_step = state["obs"], state["global_step"] + 1
         print(f"resumed from {args.checkpoint} at step {state['global_step']}", flush=True)
 

@@ -365,9 +365,10 @@ def save_checkpoint(path, parts, **values):
     atomic_write(path, lambda f: torch.save(_to_safe(state), f))
 
 
-def load_checkpoint(path, parts=()):
+def load_checkpoint(path, parts=(), check=None):
     """Reads a file written by save_checkpoint with torch's weights-only unpickler (a file that
-    would run code when unpickled is refused, as is any unreadable one: ConfigError), loads the
+    would run code when unpickled is refused, as is any unreadable one: ConfigError), calls
+    `check(state)` if given (it may raise ConfigError before any part is touched), loads the
     state of each of `parts` into it, and returns the whole dict.
 
     Every tensor is read onto the CPU, where buffers and RNG states live; a part's load_state_dict
@@ -376,8 +377,12 @@ def load_checkpoint(path, parts=()):
     import pickle
     try:
         state = _from_safe(torch.load(path, map_location="cpu", weights_only=True))
+        if check is not None:
+            check(state)
         for name, part in dict(parts).items():
             part.load_state_dict(state[name])
+    except ConfigError:
+        raise
     except pickle.UnpicklingError:  # torch's advice there is to load unsafely: not ours to give
         raise ConfigError(f"{path} is not a checkpoint this project wrote (it holds objects that could run "
                           "code when loaded); not loaded") from None
