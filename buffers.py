@@ -130,10 +130,16 @@ class TeacherBuffer:
     it, the lowest-return episodes leave first (never the one just added), so the buffer keeps
     the best episodes seen and the threshold never decreases. The authors' FIFO ring would
     instead drop the oldest data, which may be better than what stays.
+
+    keep="pareto" (an experiment) changes only which episode leaves first: the one that the most
+    kept episodes beat on both the return and the return per step, the lowest return among those.
+    Episodes of one length are then ranked by their return alone, as by default; where episodes
+    end early, a short fast one (a teacher that runs, then falls) stays beside longer slow ones
+    (standing still) until an episode both earns more and earns it faster.
     """
 
-    def __init__(self, capacity):
-        self.capacity = int(capacity)
+    def __init__(self, capacity, keep="return"):
+        self.capacity, self.keep = int(capacity), keep
         self.episodes = []  # (episodic_return, (obs, actions, next_obs, terminated))
         self._flat = None
 
@@ -158,10 +164,20 @@ class TeacherBuffer:
                                              for x in (obs, actions, next_obs, terminated)))
         self.episodes.append(new)
         while len(self) > self.capacity and len(self.episodes) > 1:
-            worst = min((ep for ep in self.episodes if ep is not new), key=lambda ep: ep[0])
-            self.episodes.remove(worst)
+            self.episodes.remove(self._first_to_leave(new))
         self._flat = [torch.cat(parts) for parts in zip(*(data for _, data in self.episodes))]
         self._flat_returns = torch.cat([torch.full((len(data[0]),), ret) for ret, data in self.episodes])
+
+    def _first_to_leave(self, new):
+        others = [ep for ep in self.episodes if ep is not new]
+        if self.keep == "return":
+            return min(others, key=lambda ep: ep[0])
+        scores = [(ret, ret / len(data[0])) for ret, data in self.episodes]
+
+        def beaten_by(i):  # how many kept episodes have at least its return and rate, and more of one
+            return sum(r >= scores[i][0] and q >= scores[i][1] and (r, q) != scores[i] for r, q in scores)
+        counts = {id(ep): beaten_by(i) for i, ep in enumerate(self.episodes)}
+        return min(others, key=lambda ep: (-counts[id(ep)], ep[0]))
 
     def promote(self, episodic_return, obs, actions, next_obs, terminated):
         """Adds the episode if it beats the threshold; returns whether it did."""

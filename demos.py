@@ -196,11 +196,11 @@ def _version(package):
     return version(package)
 
 
-def load_teacher_buffer(path, env_id, env, num_demos, capacity, time_feature, absorbing):
+def load_teacher_buffer(path, env_id, env, num_demos, capacity, time_feature, absorbing, keep="return"):
     """R_E from the first `num_demos` episodes of a demo file, with the same observation
-    features (time, absorbing state) that `env`'s wrappers add online."""
+    features (time, absorbing state) that `env`'s wrappers add online; `keep`: TeacherBuffer's."""
     raw_obs_dim = env.observation_space.shape[0] - int(time_feature) - int(absorbing)
-    teacher_buffer = TeacherBuffer(capacity)
+    teacher_buffer = TeacherBuffer(capacity, keep)
     featured = [(episode["episodic_return"], add_features(episode, env.max_episode_steps, time_feature, absorbing))
                 for episode in load_demos(path, env_id, raw_obs_dim, env.action_space.shape[0], num_demos)]
     demo_steps = sum(len(data[0]) for _, data in featured)

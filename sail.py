@@ -36,7 +36,6 @@ if __name__ == "__main__":
 
 import argparse
 import dataclasses
-import math
 import time
 
 import numpy as np
@@ -134,6 +133,7 @@ def parse_args(argv=None):
     g = p.add_argument_group("SAIL and its ablations")
     g.add_argument("--alpha", type=float, default=0.5, help="R_E's share of TD3 batches before a promotion (0: no LfD)")
     g.add_argument("--teacher-capacity", type=pos, default=10_000, help="capacity of R_E in transitions")
+    g.add_argument("--teacher-keep", choices=["return", "pareto"], default="return", help="whom a full R_E drops first")
     g.add_argument("--fixed-alpha", action="store_true", help="ablation: alpha stays at --alpha")
     g.add_argument("--no-adaptation", action="store_true", help="ablation: R_E is never updated")
     g.add_argument("--disc-negatives", choices=["all", "recent", "recent-after-promotion"],
@@ -243,8 +243,8 @@ def build(args, device, use_demos):
     eval_env = make_env(args.env, args.seed + 100, time_feature=args.time_feature, absorbing=args.absorbing)
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     teacher_buffer = (load_teacher_buffer(args.demos or default_demo_path(args.env), args.env, env, args.num_demos,
-                                          args.teacher_capacity, args.time_feature, args.absorbing)
-                      if use_demos and not args.resume else TeacherBuffer(args.teacher_capacity))
+                                          args.teacher_capacity, args.time_feature, args.absorbing, args.teacher_keep)
+                      if use_demos and not args.resume else TeacherBuffer(args.teacher_capacity, args.teacher_keep))
     agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidden=args.hidden, lr=args.lr,
                 gamma=args.gamma, tau=args.tau, policy_noise=args.policy_noise, noise_clip=args.noise_clip,
                 policy_delay=args.policy_delay, device=device, critic_layer_norm=args.critic_layer_norm)
@@ -302,7 +302,7 @@ def train(args):
             """After the warm-up; with the return bonus or decomposition, also once an episode of its
             own has ended and two different returns were seen, since both scale by their range."""
             return step >= args.learning_starts and not ((args.return_bonus > 0 or args.return_decomposition > 0) and (
-                math.isnan(s.train_episodic_return) or s.return_range[0] >= s.return_range[1]))
+                np.isnan(s.train_episodic_return) or s.return_range[0] >= s.return_range[1]))
         was_learning = learning(s.global_step)
 
         def count_time():  # training seconds since the last call (evaluations are not counted)

@@ -341,6 +341,41 @@ def test_promotion_never_evicts_the_new_episode():
     assert teacher.returns == [20.0] and teacher.threshold == 20.0
 
 
+def test_pareto_keep_holds_a_short_fast_episode_beside_long_slow_ones():
+    """The standing trap: a teacher that runs and falls (200 in 100 steps) against episodes that stand for the
+    whole 1000 steps (1000-1040). By return alone the runner leaves R_E first. Kept by Pareto it stays, and the
+    standing episode that the most others beat on both return and rate leaves instead; the runner leaves once
+    faster episodes with more return beat it as often as the worst standing one (ties: the lower return)."""
+    kept = {}
+    for keep in ("return", "pareto"):
+        teacher = TeacherBuffer(capacity=3000, keep=keep)
+        teacher.add_episode(200.0, *episode_arrays(0, 100))
+        for i, ret in enumerate([1000.0, 1020.0, 1040.0]):
+            assert teacher.promote(ret, *episode_arrays(i + 1, 1000))
+        kept[keep] = teacher.returns
+    assert kept["return"] == [1000.0, 1020.0, 1040.0]
+    assert kept["pareto"] == [200.0, 1020.0, 1040.0] and teacher.threshold == 200.0
+    assert teacher.promote(2500.0, *episode_arrays(5, 1000))  # 2.5 per step: 1020 is beaten twice, leaves
+    assert teacher.returns == [200.0, 1040.0, 2500.0]
+    assert teacher.promote(2600.0, *episode_arrays(6, 1000))  # runner and 1040 beaten twice each: the lower leaves
+    assert teacher.returns == [1040.0, 2500.0, 2600.0] and teacher.threshold == 1040.0
+
+
+def test_pareto_keep_is_the_return_rule_where_episodes_have_one_length():
+    """Same length, same rate order as return order: the two rules must keep the same episodes, ties included."""
+    rng = np.random.default_rng(0)
+    returns = rng.integers(0, 30, size=60).astype(float)  # integers: ties happen
+    kept = {}
+    for keep in ("return", "pareto"):
+        teacher = TeacherBuffer(capacity=200, keep=keep)
+        kept[keep] = []
+        for i, ret in enumerate(returns):
+            teacher.promote(ret, *episode_arrays(i, 50))
+            kept[keep].append([float(t[0, 0]) for _, (t, *_) in teacher.episodes])
+    assert kept["pareto"] == kept["return"]
+    assert len({len(k) for k in kept["return"]}) > 1  # the buffer filled and promoted along the way
+
+
 @pytest.mark.parametrize("alpha", [0.0, 0.25, 0.5, 1.0])
 def test_mixed_sampling_proportions(alpha):
     teacher = TeacherBuffer(capacity=1000)
