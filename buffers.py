@@ -172,12 +172,14 @@ class TeacherBuffer:
         others = [ep for ep in self.episodes if ep is not new]
         if self.keep == "return":
             return min(others, key=lambda ep: ep[0])
-        scores = [(ret, ret / len(data[0])) for ret, data in self.episodes]
+        def score(ep):  # the return and the return per step
+            return ep[0], ep[0] / len(ep[1][0])
+        scores = [score(ep) for ep in self.episodes]
 
-        def beaten_by(i):  # how many kept episodes have at least its return and rate, and more of one
-            return sum(r >= scores[i][0] and q >= scores[i][1] and (r, q) != scores[i] for r, q in scores)
-        counts = {id(ep): beaten_by(i) for i, ep in enumerate(self.episodes)}
-        return min(others, key=lambda ep: (-counts[id(ep)], ep[0]))
+        def beaten(ep):  # how many kept episodes have at least its return and rate, and more of one
+            mine = score(ep)
+            return sum(r >= mine[0] and q >= mine[1] and (r, q) != mine for r, q in scores)
+        return min(others, key=lambda ep: (-beaten(ep), ep[0]))
 
     def promote(self, episodic_return, obs, actions, next_obs, terminated):
         """Adds the episode if it beats the threshold; returns whether it did."""
