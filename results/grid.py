@@ -212,6 +212,15 @@ GRIDS = {
         "sail-dan-cost-actor": sail("SAIL", *OFF_POLICY, *DEFAULTS),
         "sail-pareto": sail("SAIL (--teacher-keep pareto)", *OFF_POLICY, *DEFAULTS, "--teacher-keep", "pareto")},
         [9, 10, 11]),
+    # Which policy sail.py should score and save: TD3's actor or its Polyak-averaged target actor (a smoothed
+    # actor; Hopper-v5 defaults seed 9 at 300k: the actor falls after ~19 steps, the target runs 1000). Measured on
+    # the last checkpoint of each run of `pareto-teacher` and of this grid (HalfCheetah-v5 and Swimmer-v5, where
+    # the two R_E rules keep the same episodes): `python results/early_ends.py RUN_DIR --episodes 40`, and the
+    # same with --target. The rule, fixed before every measurement but that one: with the R_E rule stage 2
+    # above chooses, the target actor is deployed if its 3-seed mean is above the actor's on at least 3 of the
+    # 5 envs and lower by more than 5% on none; else the actor stays, as in the paper.
+    "deploy-target": grid(["HalfCheetah-v5", "Swimmer-v5"], {"sail-dan-cost-actor": sail("SAIL", *OFF_POLICY,
+                                                                                           *DEFAULTS)}, [9, 10, 11]),
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
                        {"sail-4demos": sail("SAIL-paper", *PAPER, "--num-demos", "4"),
