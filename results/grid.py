@@ -53,6 +53,8 @@ DAN_FLAGS = [*LN_ONPOLICY_FLAGS, "--return-decomposition", "1", "--decomposition
 DEFAULTS = [*DAN_FLAGS, "--action-cost", "reward-and-actor"]
 # the earlier defaults: the same without the learned action cost
 FIVE_ADDITIONS = [*DAN_FLAGS, "--action-cost", "none"]
+# SAIL as sail.py runs it today, 300k steps
+SAIL_DEFAULTS = sail("SAIL", *OFF_POLICY, *DEFAULTS)
 DAC = sail("DAC", *OFF_POLICY, "--algo", "dac")
 ALL_ENVS = ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Swimmer-v5", "Ant-v5"]
 GRIDS = {
@@ -158,14 +160,14 @@ GRIDS = {
     # reward hardly reached the actor, and once the ant is upside down (Q near 0 whatever it does) the actor runs
     # its actions into the bounds (results/early_ends.py and its --rest-when-upside-down; the probes' checkpoints
     # were not kept)
-    "learning-actor-cost": grid(ALL_ENVS, {"sail-dan-cost-actor": sail("SAIL", *OFF_POLICY, *DEFAULTS)}, [1, 2, 3]),
+    "learning-actor-cost": grid(ALL_ENVS, {"sail-dan-cost-actor": SAIL_DEFAULTS}, [1, 2, 3]),
     # seeds 4 and 5 of the five additions and of that pair, on all five envs, so that the choice between them is
     # made on 5 seeds each. Fixed before these runs started: the pair becomes the default if its 5-seed mean
     # (seeds 1-5, final = mean of the last 5 evaluations) is above the five additions' on at least three of the
     # five envs; otherwise it stays a flag (it became the default)
     "decide-actor-cost": grid(ALL_ENVS, {
         "sail-ln-onpolicy-promotion-rrd1-rate-dan": sail("SAIL (--action-cost none)", *OFF_POLICY, *FIVE_ADDITIONS),
-        "sail-dan-cost-actor": sail("SAIL", *OFF_POLICY, *DEFAULTS)}, [4, 5]),
+        "sail-dan-cost-actor": SAIL_DEFAULTS}, [4, 5]),
     # the five additions for 1M env steps (a run's first 300k steps are the run of 300k with its seed: nothing in
     # the learning depends on --total-timesteps, so a 300k run continued with --resume RUN_DIR --total-timesteps
     # 1000000 is the same run as one started for 1M)
@@ -183,7 +185,7 @@ GRIDS = {
     # the confirmation of sail.py's defaults on seeds that no decision saw (6-8; seeds 1-5 chose them): whatever
     # these runs show is the result, reported beside seeds 1-5, with no rerun and no change of the defaults on
     # their account. Their runs are named as seeds 1-5's (`learning-actor-cost`, `decide-actor-cost`)
-    "confirm": grid(ALL_ENVS, {"sail-dan-cost-actor": sail("SAIL", *OFF_POLICY, *DEFAULTS)}, [6, 7, 8]),
+    "confirm": grid(ALL_ENVS, {"sail-dan-cost-actor": SAIL_DEFAULTS}, [6, 7, 8]),
     # sail.py's defaults for 1M env steps on seeds no decision saw: seeds 6 and 7 are their 300k runs of `confirm`,
     # continued with --resume --total-timesteps 1000000 (the run folder copied to this grid's runs folder first)
     "confirm-long": grid(["Walker2d-v5", "HalfCheetah-v5"], {"sail-dan-cost-actor-1M": sail(
@@ -209,7 +211,7 @@ GRIDS = {
                                          "--teacher-keep", "pareto", "--demos", f"demos/{env}-weak.npz")},
         [9, 10, 11])],
     "pareto-teacher": grid(["Hopper-v5", "Walker2d-v5", "Ant-v5"], {
-        "sail-dan-cost-actor": sail("SAIL", *OFF_POLICY, *DEFAULTS),
+        "sail-dan-cost-actor": SAIL_DEFAULTS,
         "sail-pareto": sail("SAIL (--teacher-keep pareto)", *OFF_POLICY, *DEFAULTS, "--teacher-keep", "pareto")},
         [9, 10, 11]),
     # Which policy sail.py should score and save: TD3's actor or its Polyak-averaged target actor (a smoothed
@@ -219,8 +221,7 @@ GRIDS = {
     # same with --target. The rule, fixed before every measurement but that one: with the R_E rule stage 2
     # above chooses, the target actor is deployed if its 3-seed mean is above the actor's on at least 3 of the
     # 5 envs and lower by more than 5% on none; else the actor stays, as in the paper.
-    "deploy-target": grid(["HalfCheetah-v5", "Swimmer-v5"], {"sail-dan-cost-actor": sail("SAIL", *OFF_POLICY,
-                                                                                           *DEFAULTS)}, [9, 10, 11]),
+    "deploy-target": grid(["HalfCheetah-v5", "Swimmer-v5"], {"sail-dan-cost-actor": SAIL_DEFAULTS}, [9, 10, 11]),
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
                        {"sail-4demos": sail("SAIL-paper", *PAPER, "--num-demos", "4"),
