@@ -192,8 +192,8 @@ def rollout(env, policy, frames=None):
     `frames`, appends env.render() after the reset and after every step.
 
     The dict holds observations, actions, rewards, next_observations (as the env gave them),
-    terminated / truncated for the episode, and episodic_return, the dense return of the episode
-    (RecordEpisodeStatistics' info["episode"]["r"]).
+    terminated / truncated for the episode, and episodic_return and length, the dense return and the
+    env's own step count (RecordEpisodeStatistics' info["episode"]; DAC's absorbing self-loop not counted).
     """
     obs, _ = env.reset()
     if frames is not None:
@@ -211,7 +211,8 @@ def rollout(env, policy, frames=None):
     observations, actions, rewards, next_observations = (np.array(x) for x in zip(*steps))
     return {"observations": observations, "actions": actions, "rewards": rewards,
             "next_observations": next_observations, "terminated": bool(terminated),
-            "truncated": bool(truncated), "episodic_return": float(info["episode"]["r"])}
+            "truncated": bool(truncated), "episodic_return": float(info["episode"]["r"]),
+            "length": int(info["episode"]["l"])}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -284,4 +285,4 @@ def evaluate_policy(env, policy, episodes):
     runs = [rollout(env, policy) for _ in range(episodes)]
     returns = [run["episodic_return"] for run in runs]
     return {"eval_return": float(np.mean(returns)), "eval_return_std": float(np.std(returns)),
-            "eval_length": float(np.mean([len(run["actions"]) for run in runs]))}
+            "eval_length": float(np.mean([run["length"] for run in runs]))}

@@ -15,7 +15,7 @@ import torch.nn.functional as F
 import cpu_kernels
 from buffers import ReplayBuffer, TeacherBuffer, mixed_batch
 from demos import load_demos, save_demos
-from envs import absorbing_state, add_features, get_env_state, make_env, rollout, set_env_state
+from envs import absorbing_state, add_features, evaluate_policy, get_env_state, make_env, rollout, set_env_state
 from plumbing import ConfigError
 from td3 import TD3, make_adam
 
@@ -193,6 +193,13 @@ def test_absorbing_state_loops_once_and_is_not_terminal():
     np.testing.assert_array_equal(obs, absorbing_state(11))
     assert truncated and not terminated and reward == info["episode"]["r"] != 0.0
     assert all(r == 0.0 for r in rewards)
+
+
+def test_eval_length_counts_the_env_steps_not_the_absorbing_self_loop():
+    """A hopper pushed hard falls; DAC's wrapper adds one self-loop step that is no step of the env."""
+    lengths = [evaluate_policy(make_env("Hopper-v5", seed=3, time_feature=False, absorbing=absorbing),
+                               lambda obs: np.ones(3, np.float32), 2)["eval_length"] for absorbing in (False, True)]
+    assert lengths[0] < 1000 and lengths[1] == lengths[0]
 
 
 @pytest.mark.parametrize("time_feature, absorbing", [(True, False), (False, True), (True, True)])
