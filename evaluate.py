@@ -86,7 +86,7 @@ def evaluate_run(run_dir, episodes, seed, threads, video=None, noise=0.0):
         if video is not None:  # what the video keeps, episode by episode (a 480x480 frame is 0.7 MB)
             frames += kept_frames(video, episode_frames, fps)
         returns.append(episode["episodic_return"])
-        print(f"episode {i + 1}: return {returns[-1]:.1f}, length {len(episode['actions'])}")
+        print(f"episode {i + 1}: return {returns[-1]:.1f}, length {episode['length']}")
     print(f"{config.env}, {path}: mean return {np.mean(returns):.1f} +- {np.std(returns):.1f} "
           f"over {len(returns)} episodes (env seed {seed}{f', exploration noise {noise:g}' if noise else ''})")
     if video is not None:

@@ -103,7 +103,7 @@ for i in range(args.episodes):
     if config["absorbing"]:  # DAC's absorbing state (indicator 1) follows an early end: not a body state
         states = states[states[:, -1] == 0.0]
     height = states[:, 0]
-    ended_early = len(episode["actions"]) < env.max_episode_steps
+    ended_early = episode["length"] < env.max_episode_steps
     returns.append(episode["episodic_return"])
     action_cost.append((episode["actions"] ** 2).sum(-1).mean())
     start_cost.append((episode["actions"][:20] ** 2).sum(-1).mean())
@@ -112,7 +112,7 @@ for i in range(args.episodes):
     if ant:
         ending += f", {int(upside_down(states).sum())} steps upside down"
     print(f"episode {i + 1}: return {returns[-1]:.1f} (forward reward {forward:.0f}, control cost "
-          f"{weight * (episode['actions'] ** 2).sum():.0f}), length {len(episode['actions'])}, first entry "
+          f"{weight * (episode['actions'] ** 2).sum():.0f}), length {episode['length']}, first entry "
           f"{height.min():.2f}-{height.max():.2f}, {ending}")
 print(f"{config['env']}, {'target actor' if args.target else 'actor'}"
       f"{' (the zero action once upside down)' if args.rest_when_upside_down else ''}"
