@@ -1,6 +1,7 @@
 """Tests of the SAIL reimplementation: run with `python -m pytest -q test_sail.py`."""
 
 import copy
+import glob
 import os
 import re
 import subprocess
@@ -2155,9 +2156,10 @@ def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
     """A committed run's config (its method, env, seed, teacher episodes and every learner flag) is what its
     grid line gives sail.py as it is now: a default that changes must leave the grids of the older runs
     writing the old value out. Every committed run is some grid line's, named as a new run of that line is."""
-    folders = ("runs", os.path.join("long", "runs"), "learning")
+    folders = ("runs", os.path.join("long", "runs"), "learning", "weak-teacher", "pareto-teacher")
     committed = {os.path.join(folder, name) for folder in folders
-                 for name in os.listdir(os.path.join(HERE, "results", folder))}
+                 for name in os.listdir(os.path.join(HERE, "results", folder))
+                 if os.path.isdir(os.path.join(HERE, "results", folder, name))}
     found, checked = set(), 0
     for entries in load_grid_module().GRIDS.values():
         for name, script, flags in entries:
@@ -2182,6 +2184,27 @@ def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
                 checked += 1
     assert found == committed, sorted(committed - found)
     assert checked > 150
+
+
+def test_the_cpu_a_results_paragraph_names_is_the_one_its_runs_recorded():
+    """Where a paragraph of a results write-up names a CPU ("family F model M") and the runs it is about,
+    each of those runs' config.json recorded that CPU: a speed or a date is only as good as its machine."""
+    recorded = {}
+    for path in glob.glob(os.path.join(HERE, "results", "**", "config.json"), recursive=True):
+        with open(path) as f:
+            recorded[os.path.basename(os.path.dirname(path))] = json.load(f).get("cpu", "")
+    checked = 0
+    for doc in glob.glob(os.path.join(HERE, "results", "**", "README.md"), recursive=True):
+        for paragraph in re.split(r"\n\s*\n|\n- ", open(doc).read()):
+            named = {(int(f), int(m)) for f, m in re.findall(r"family (\d+),? model (\d+)", paragraph)}
+            runs = set(re.findall(r"`(\w+-v5__[\w-]+__\d+)`", paragraph)) & recorded.keys()
+            if len(named) != 1 or not runs:
+                continue
+            for run in runs:
+                cpu = re.search(r"family (\d+), model (\d+)", recorded[run])
+                assert cpu and (int(cpu[1]), int(cpu[2])) in named, (doc, run, recorded[run], named)
+                checked += 1
+    assert checked >= 8
 
 
 def test_grid_list_into_a_closed_pipe_is_quiet():
