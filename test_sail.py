@@ -1232,7 +1232,9 @@ def test_promotion_switches_alpha_inside_the_loop(tmp_path, poor_hopper_demos):
 
 
 # fixed kernels: `auto` times them in each process and may choose differently in two runs
+# a small R_E: promotions evict episodes within these 1000 steps, across a resume too
 RESUME_FLAGS = ["--env", "Hopper-v5", "--learning-starts", "500", "--eval-freq", "250", "--disc-freq", "100",
+                "--teacher-capacity", "150",
                 "--seed", "3", "--kernels", "onednn" if cpu_kernels.AVAILABLE else "torch", *TINY]
 
 
@@ -1240,15 +1242,18 @@ RESUME_FLAGS = ["--env", "Hopper-v5", "--learning-starts", "500", "--eval-freq",
 def straight_runs(tmp_path_factory, poor_hopper_demos):
     """Side by side: a run of 1000 steps with sail.py's defaults, never interrupted (what every interrupted
     and resumed one must equal); the same run of the paper's SAIL (no return decomposition, plain critics);
-    and the first run stopped at step 700, which test_resume_equals_an_uninterrupted_run resumes."""
+    the first run stopped at step 700, which test_resume_equals_an_uninterrupted_run resumes; and the first
+    run with --teacher-keep pareto."""
     out = tmp_path_factory.mktemp("straight")
     flags = [*RESUME_FLAGS, "--demos", poor_hopper_demos, "--output-dir", str(out)]
     procs = run_scripts(("sail.py", *flags, "--total-timesteps", "1000", "--run-name", "a"),
                         ("sail.py", *flags, "--algo", "sail-paper", "--total-timesteps", "1000", "--run-name", "paper"),
-                        ("sail.py", *flags, "--total-timesteps", "700", "--run-name", "stopped"))
+                        ("sail.py", *flags, "--total-timesteps", "700", "--run-name", "stopped"),
+                        ("sail.py", *flags, "--total-timesteps", "1000", "--teacher-keep", "pareto",
+                         "--run-name", "pareto"))
     for proc in procs:
         assert proc.returncode == 0, proc.stderr[-3000:]
-    return {"straight": out / "a", "paper": out / "paper", "stopped": out / "stopped"}
+    return {"straight": out / "a", "paper": out / "paper", "stopped": out / "stopped", "pareto": out / "pareto"}
 
 
 @pytest.fixture(scope="module")
@@ -1405,6 +1410,28 @@ def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     assert groups[0].startswith(f"  0 (the terminal step): {falls} transitions, mean over {falls}: Q ")
     assert groups[-1] == "  episodes that ran to the limit: none"
     assert missing.returncode == 2 and "has no config.json" in missing.stderr
+
+
+def test_keep_replay_finds_where_the_two_teacher_keep_rules_part(straight_runs):
+    """The replay of both R_E rules on a run's own episodes reproduces its checkpoint's R_E (after promotions
+    that evicted episodes), names the same parting step from either run of a pair, and up to that step the
+    two runs are one run. (After it they may still be: R_E is not sampled before --learning-starts.)"""
+    replay = os.path.join("results", "keep_replay.py")
+    by_return, by_pareto = run_scripts((replay, str(straight_runs["straight"])), (replay, str(straight_runs["pareto"])))
+    parted = []
+    for proc in (by_return, by_pareto):
+        assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
+        lines = proc.stdout.splitlines()
+        assert re.match(r"replayed with its own rule: \d+ promotions, R_E at the end matches the checkpoint", lines[1])
+        parted.append(re.fullmatch(r"the two rules part after the episode that ends at step (\d+)", lines[2]))
+    # the poor teacher's 11-step episode, random episodes of many lengths and a 150-step R_E: the rules part
+    assert parted[0] and parted[1] and parted[0][1] == parted[1][1]
+    step = int(parted[0][1])
+    before = [(a, b) for a, b in zip(read_csv(straight_runs["straight"]), read_csv(straight_runs["pareto"]))
+              if int(a["global_step"]) <= step]
+    drop = ("steps_per_second", "time")
+    assert before and all({k: v for k, v in a.items() if k not in drop} == {k: v for k, v in b.items() if k not in drop}
+                          for a, b in before)
 
 
 def test_checkpoint_probe_reports_q_slope_and_d(straight_paper_run, straight_run):

@@ -205,7 +205,10 @@ GRIDS = {
     # 2. then the shipped teachers (`pareto-teacher`: both rules, Hopper, Walker2d and Ant, seeds 9-11): pareto
     #    becomes the default if no env's 3-seed mean is lower than the defaults' by more than 5%. HalfCheetah-v5
     #    and Swimmer-v5 are not run: their episodes all last 1000 steps, where the two rules keep the same
-    #    episodes (test_pareto_keep_is_the_return_rule_where_episodes_have_one_length)
+    #    episodes (test_pareto_keep_is_the_return_rule_where_episodes_have_one_length). Where a run's own
+    #    episodes never make the two rules keep different R_E (`python results/keep_replay.py RUN_DIR` on its
+    #    last checkpoint; Ant-v5 seed 9's two runs were one run, step for step), the other rule's run on that seed
+    #    is the same run and is not made again: its final is that run's (added before Ant-v5's seeds 10 and 11)
     "weak-pareto": [line for env in ["Walker2d-v5", "Hopper-v5", "Ant-v5"] for line in grid(
         [env], {"sail-weak-pareto": sail("SAIL (weak teacher, --teacher-keep pareto)", *OFF_POLICY, *DEFAULTS,
                                          "--teacher-keep", "pareto", "--demos", f"demos/{env}-weak.npz")},
