@@ -428,6 +428,26 @@ class RNGs:
             torch.cuda.set_rng_state_all(state["cuda"])
 
 
+def run_folder_config(parser, run_dir):
+    """The config.json of a results script's RUN_DIR, a run folder made by sail.py with its checkpoint.pt,
+    as a dict; a folder without them, or an unreadable config, is the parser's one error line (exit 2)."""
+    for name in ("config.json", "checkpoint.pt"):
+        if not os.path.isfile(os.path.join(run_dir, name)):
+            parser.error(f"{run_dir} has no {name}: give a run folder made by sail.py")
+    try:
+        return vars(read_config(run_dir))
+    except ConfigError as e:
+        parser.error(str(e))
+
+
+def run_folder_checkpoint(parser, run_dir, parts=()):
+    """load_checkpoint on RUN_DIR's checkpoint.pt, an unreadable one the parser's one error line (exit 2)."""
+    try:
+        return load_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts)
+    except ConfigError as e:
+        parser.error(str(e))
+
+
 # ---------------------------------------------------------------------------------------------
 # --resume and stopping
 # ---------------------------------------------------------------------------------------------

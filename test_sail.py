@@ -1412,6 +1412,23 @@ def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     assert missing.returncode == 2 and "has no config.json" in missing.stderr
 
 
+def test_results_scripts_refuse_an_unreadable_run_folder_in_one_line(tmp_path):
+    """Each results script that opens a RUN_DIR: a broken config.json, then a good one beside a checkpoint.pt
+    that is not one, is one error line naming the file and exit 2, before any work."""
+    broken, bad_checkpoint = tmp_path / "broken", tmp_path / "bad_checkpoint"
+    good = open(os.path.join(HERE, "results", "pareto-teacher", "Hopper-v5__sail-dan-cost-actor__9", "config.json")).read()
+    for folder, config in ((broken, "{"), (bad_checkpoint, good)):
+        folder.mkdir()
+        (folder / "config.json").write_text(config)
+        (folder / "checkpoint.pt").write_text("not a checkpoint")
+    scripts = [os.path.join("results", f"{name}.py") for name in ("probe", "early_ends", "rrd_probe", "keep_replay")]
+    procs = run_scripts(*[(script, str(folder)) for folder in (broken, bad_checkpoint) for script in scripts])
+    for proc, file in zip(procs, ["config.json"] * 4 + ["checkpoint.pt"] * 4):
+        error = proc.stderr.strip().splitlines()[-1]
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert re.match(r"\w+\.py: error: (cannot read )?\S+/" + re.escape(file) + r"\b", error), error
+
+
 def test_keep_replay_finds_where_the_two_teacher_keep_rules_part(straight_runs):
     """The replay of both R_E rules on a run's own episodes reproduces its checkpoint's R_E (after promotions
     that evicted episodes), names the same parting step from either run of a pair, and up to that step the

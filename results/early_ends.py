@@ -29,7 +29,6 @@ episode's first N steps (whether the early ends come from how the actor starts).
 """
 
 import argparse
-import json
 import os
 import sys
 
@@ -41,7 +40,7 @@ from credit import RewardModel, return_bonus  # noqa: E402
 from demos import default_demo_path  # noqa: E402
 from discriminator import Discriminator, shaped_reward  # noqa: E402
 from envs import make_env, rollout  # noqa: E402
-from plumbing import load_checkpoint, positive_int  # noqa: E402
+from plumbing import run_folder_checkpoint, run_folder_config, positive_int  # noqa: E402
 from td3 import TD3  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -54,16 +53,13 @@ p.add_argument("--rest-when-upside-down", action="store_true",
                help="Ant-v5: the zero action from the first step upside down to the episode's end")
 p.add_argument("--zero-start", type=int, default=0, metavar="N", help="the zero action for each episode's first N steps")
 args = p.parse_args()
-for name in ("config.json", "checkpoint.pt"):
-    if not os.path.isfile(os.path.join(args.run_dir, name)):
-        p.error(f"{args.run_dir} has no {name}: give a run folder made by sail.py")
-config = json.load(open(os.path.join(args.run_dir, "config.json")))
+config = run_folder_config(p, args.run_dir)
 torch.set_num_threads(1)
 torch.set_grad_enabled(False)
 env = make_env(config["env"], args.seed, time_feature=config["time_feature"], absorbing=config["absorbing"])
 agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low, env.action_space.high,
             hidden=config["hidden"], critic_layer_norm=config.get("critic_layer_norm", False))
-checkpoint = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"), {"agent": agent})
+checkpoint = run_folder_checkpoint(p, args.run_dir, {"agent": agent})
 policy = (lambda o: agent.act(o, target=True)) if args.target else agent.act
 
 unwrapped = env.unwrapped

@@ -15,7 +15,6 @@ precision would show up as a mismatch there).
 """
 
 import argparse
-import json
 import os
 import sys
 
@@ -26,16 +25,13 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from buffers import TeacherBuffer  # noqa: E402
 from demos import default_demo_path, load_demos  # noqa: E402
-from plumbing import load_checkpoint  # noqa: E402
+from plumbing import run_folder_checkpoint, run_folder_config  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
 args = p.parse_args()
-for name in ("config.json", "checkpoint.pt"):
-    if not os.path.isfile(os.path.join(args.run_dir, name)):
-        p.error(f"{args.run_dir} has no {name}: give a run folder made by sail.py")
-config = json.load(open(os.path.join(args.run_dir, "config.json")))
-state = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"))
+config = run_folder_config(p, args.run_dir)
+state = run_folder_checkpoint(p, args.run_dir)
 self_buffer = state["self_buffer"]
 if self_buffer["ptr"] != self_buffer["size"]:
     p.error(f"{args.run_dir}: R_B has wrapped around, its first episodes are gone")

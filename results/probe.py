@@ -22,7 +22,6 @@ observation --velocity-index, the lowest return first.
 """
 
 import argparse
-import json
 import os
 import sys
 
@@ -36,7 +35,7 @@ from credit import RewardModel, decomposition_unit  # noqa: E402
 from demos import default_demo_path, load_demos  # noqa: E402
 from discriminator import Discriminator, shaped_reward  # noqa: E402
 from envs import absorbing_state, add_features  # noqa: E402
-from plumbing import load_checkpoint  # noqa: E402
+from plumbing import run_folder_checkpoint, run_folder_config  # noqa: E402
 from td3 import Actor, TwinCritic  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -44,11 +43,8 @@ p.add_argument("run_dir")
 p.add_argument("--velocity-index", type=int, default=8, help="the observation scaled in the D probe")
 p.add_argument("--height-index", type=int, default=0, help="the observation whose bins the last probe reports")
 args = p.parse_args()
-for name in ("config.json", "checkpoint.pt"):
-    if not os.path.isfile(os.path.join(args.run_dir, name)):
-        p.error(f"{args.run_dir} has no {name}: give a run folder made by sail.py")
-config = json.load(open(os.path.join(args.run_dir, "config.json")))
-state = load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"))
+config = run_folder_config(p, args.run_dir)
+state = run_folder_checkpoint(p, args.run_dir)
 self_obs = state["self_buffer"]["data"][0]
 obs_dim, act_dim = self_obs.shape[1], state["self_buffer"]["data"][1].shape[1]
 self_buffer = ReplayBuffer(obs_dim, act_dim, config["buffer_size"])

@@ -21,7 +21,6 @@ refits with it, and both report the learned weight c.
 """
 
 import argparse
-import json
 import os
 import sys
 
@@ -32,7 +31,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from buffers import ReplayBuffer  # noqa: E402
 from envs import make_env  # noqa: E402
 from credit import RewardModel, train_reward_model  # noqa: E402
-from plumbing import load_checkpoint  # noqa: E402
+from plumbing import run_folder_checkpoint, run_folder_config  # noqa: E402
 from td3 import TD3, make_adam  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -45,10 +44,7 @@ p.add_argument("--refit-steps", type=int, default=5000, help="minibatches of eac
 p.add_argument("--refit-action-cost", action="store_true", help="refit with the learned quadratic action cost "
                "(sail.py's --action-cost) whether or not the run had it")
 args = p.parse_args()
-for name in ("config.json", "checkpoint.pt"):
-    if not os.path.isfile(os.path.join(args.run_dir, name)):
-        p.error(f"{args.run_dir} has no {name}: give a run folder made by sail.py")
-config = json.load(open(os.path.join(args.run_dir, "config.json")))
+config = run_folder_config(p, args.run_dir)
 if not config.get("return_decomposition"):
     p.error(f"{args.run_dir} was made without --return-decomposition: it has no reward model")
 if any(k < 1 or k > config["batch_size"] for k in args.refit) or args.refit_steps < 1:
@@ -64,8 +60,8 @@ agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidde
 learn_action_cost = config.get("action_cost", "none") != "none" or config.get("decomposition_action_cost", False)
 reward_model = RewardModel(obs_dim, act_dim, config["hidden"], learn_action_cost)
 self_buffer = ReplayBuffer(obs_dim, act_dim, config["buffer_size"])
-load_checkpoint(os.path.join(args.run_dir, "checkpoint.pt"),
-                {"agent": agent, "reward_model": reward_model, "self_buffer": self_buffer})
+run_folder_checkpoint(p, args.run_dir,
+                      {"agent": agent, "reward_model": reward_model, "self_buffer": self_buffer})
 rng = np.random.default_rng(args.seed)
 low, high = (torch.as_tensor(x, dtype=torch.float32) for x in (env.action_space.low, env.action_space.high))
 ctrl_cost_weight = getattr(env.unwrapped, "_ctrl_cost_weight", float("nan"))
