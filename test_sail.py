@@ -1266,10 +1266,13 @@ def straight_paper_run(straight_runs):
     return straight_runs["paper"]
 
 
+def learning_rows(run_dir):
+    """progress.csv's rows without speed and time, the columns in which two runs of one command differ."""
+    return [{k: v for k, v in row.items() if k not in ("steps_per_second", "time")} for row in read_csv(run_dir)]
+
+
 def assert_same_run(run_a, run_b):
-    drop = ("steps_per_second", "time")
-    rows_a = [{k: v for k, v in r.items() if k not in drop} for r in read_csv(run_a)]
-    rows_b = [{k: v for k, v in r.items() if k not in drop} for r in read_csv(run_b)]
+    rows_a, rows_b = learning_rows(run_a), learning_rows(run_b)
     assert len(rows_a) == 4 and rows_a == rows_b
     model_a = torch.load(run_a / "model.pt", weights_only=True)
     model_b = torch.load(run_b / "model.pt", weights_only=True)
@@ -1301,16 +1304,19 @@ def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(stra
     lines = proc.stdout.splitlines()
     scaling = [f"actions x {k}" for k in (0.0, 0.5, 1.0, 1.5)]
     heads = [line.split(":")[0] for line in lines]
-    assert heads[:2] == ["noise 0.0", "noise 0.1"] and heads[3:7] == scaling and heads[8:] == scaling
+    assert heads[:2] == ["noise 0.0", "noise 0.1"] and heads[3:7] == scaling and heads[8:12] == scaling
     assert re.match(r"learned action cost c = [0-9.e-]+ per unit of squared action norm", lines[2])
     assert re.match(r"refit with subsets of 8 steps, 20 minibatches \(last loss \S+, c = [0-9.e-]+\)", lines[7])
-    for block in (lines[3:7], lines[8:]):  # the run's reward model on a played episode; the refit one on R_B
+    for block in (lines[3:7], lines[8:12]):  # the run's reward model on a played episode; the refit one on R_B
         changes = [re.search(r"mean r (\S+) a step, the env's control cost (\S+) a step$", line).groups()
                    for line in block]
         assert [float(c) for c in changes[2]] == [0.0, 0.0]  # the actions as played
         cost = [float(c[1]) for c in changes]
         assert cost[0] < cost[1] < 0 <= cost[3]  # the control cost grows with the actions (to their bounds)
     assert "on R_B's last 1000 transitions" in lines[7]  # all of the 1000-step run's
+    # the refit model's per-step correlation with the dense reward on each episode played above
+    correlations = re.fullmatch(r"per-step correlation with the dense reward: noise 0.0 (\S+), noise 0.1 (\S+)", lines[12])
+    assert len(lines) == 13 and correlations and all(-1 <= float(r) <= 1 for r in correlations.groups())
     assert without.returncode == 2 and "without --return-decomposition" in without.stderr
     assert bad.returncode == 2 and "--refit sizes must be" in bad.stderr
 
@@ -1444,11 +1450,9 @@ def test_keep_replay_finds_where_the_two_teacher_keep_rules_part(straight_runs):
     # the poor teacher's 11-step episode, random episodes of many lengths and a 150-step R_E: the rules part
     assert parted[0] and parted[1] and parted[0][1] == parted[1][1]
     step = int(parted[0][1])
-    before = [(a, b) for a, b in zip(read_csv(straight_runs["straight"]), read_csv(straight_runs["pareto"]))
+    before = [(a, b) for a, b in zip(learning_rows(straight_runs["straight"]), learning_rows(straight_runs["pareto"]))
               if int(a["global_step"]) <= step]
-    drop = ("steps_per_second", "time")
-    assert before and all({k: v for k, v in a.items() if k not in drop} == {k: v for k, v in b.items() if k not in drop}
-                          for a, b in before)
+    assert before and all(a == b for a, b in before)
 
 
 def test_checkpoint_probe_reports_q_slope_and_d(straight_paper_run, straight_run):
@@ -2092,9 +2096,7 @@ def test_gail_and_pofd_smoke_runs_write_the_csv_and_resume_exactly(tmp_path, poo
         assert all(np.isfinite(float(r["eval_return"])) and 0 < float(r["disc_teacher"]) < 1 for r in rows)
         config = json.load(open(tmp_path / algo / "a" / "config.json"))
         assert config["algo"] == algo and config["method"] == {"gail": "GAIL", "pofd": "POfD"}[algo]
-        drop = ("steps_per_second", "time")
-        assert ([{k: v for k, v in r.items() if k not in drop} for r in rows]
-                == [{k: v for k, v in r.items() if k not in drop} for r in read_csv(tmp_path / algo / "b")])
+        assert learning_rows(tmp_path / algo / "a") == learning_rows(tmp_path / algo / "b")
         assert_one_line_error(main_in_process(gail.main, ["--resume", str(tmp_path / algo / "b"), "--max-kl", "0.05"],
                                               capsys))
     for bad in (["--steps-per-batch", "1"], ["--max-kl", "inf"], ["--eval-freq", "5000", "--total-timesteps", "1000"]):

@@ -15,7 +15,8 @@ only this probe reads it.
 --refit K [K ...] trains, for each subset size K, a fresh reward model on the run's self buffer
 R_B as sail.py does (`--decomposition-subset K`, --refit-steps minibatches), and prints the same
 action scaling over R_B's most recent 20k transitions (their own s, a, s'): whether a smaller or
-larger subset learns more of what actions cost from the same episodes. A run made with the
+larger subset learns more of what actions cost from the same episodes, and each refit model's per-step
+correlation with the dense reward on the episodes played above. A run made with the
 learned action cost (--action-cost reward or reward-and-actor; or any run, with --refit-action-cost)
 refits with it, and both report the learned weight c.
 """
@@ -66,7 +67,7 @@ rng = np.random.default_rng(args.seed)
 low, high = (torch.as_tensor(x, dtype=torch.float32) for x in (env.action_space.low, env.action_space.high))
 ctrl_cost_weight = getattr(env.unwrapped, "_ctrl_cost_weight", float("nan"))
 
-first_episode = None
+played = []  # per noise level: the episode's (s, a, s') as tensors and its dense rewards
 for noise in args.noise:
     obs, _ = env.reset()
     dense, learned, steps, done = [], [], [], False
@@ -81,7 +82,7 @@ for noise in args.noise:
     dense, learned = np.array(dense), np.array(learned)
     print(f"noise {noise}: {len(dense)} steps, dense return {dense.sum():.1f}, sum of r {learned.sum():.1f}, "
           f"per-step correlation {np.corrcoef(dense, learned)[0, 1]:.2f}")
-    first_episode = first_episode or steps
+    played.append(([torch.as_tensor(np.array(x), dtype=torch.float32) for x in zip(*steps)], dense))
 
 
 def print_action_scaling(model, obs, actions, next_obs):
@@ -97,7 +98,7 @@ def print_action_scaling(model, obs, actions, next_obs):
 if learn_action_cost:
     print(f"learned action cost c = {float(reward_model.action_cost()):.4g} per unit of squared action norm "
           f"(the env's control cost weight: {ctrl_cost_weight:.4g})")
-print_action_scaling(reward_model, *(torch.as_tensor(np.array(x), dtype=torch.float32) for x in zip(*first_episode)))
+print_action_scaling(reward_model, *played[0][0])
 recent = (self_buffer.ptr - torch.arange(1, min(20000, self_buffer.size) + 1)) % self_buffer.capacity
 for subset in args.refit:
     torch.manual_seed(args.seed)
@@ -110,3 +111,6 @@ for subset in args.refit:
     print(f"refit with subsets of {subset} steps, {args.refit_steps} minibatches (last loss {float(loss):.4g}"
           f"{learned_cost}), on R_B's last {len(recent)} transitions:")
     print_action_scaling(model, self_buffer.obs[recent], self_buffer.actions[recent], self_buffer.next_obs[recent])
+    print("per-step correlation with the dense reward: " + ", ".join(
+        f"noise {noise} {np.corrcoef(dense, model(*steps).reshape(-1).numpy())[0, 1]:.2f}"
+        for noise, (steps, dense) in zip(args.noise, played)))
