@@ -1297,7 +1297,7 @@ def test_resume_equals_an_uninterrupted_run(straight_runs):
 def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(straight_run, straight_paper_run):
     probe = os.path.join("results", "rrd_probe.py")
     proc, without, bad = run_scripts((probe, str(straight_run), "--noise", "0", "0.1", "--refit", "8",
-                                      "--refit-steps", "20"),
+                                      "--refit-steps", "20", "--refit-hidden", "16"),
                                      (probe, str(straight_paper_run)),
                                      (probe, str(straight_run), "--refit", "0"))
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -1306,7 +1306,8 @@ def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(stra
     heads = [line.split(":")[0] for line in lines]
     assert heads[:2] == ["noise 0.0", "noise 0.1"] and heads[3:7] == scaling and heads[8:12] == scaling
     assert re.match(r"learned action cost c = [0-9.e-]+ per unit of squared action norm", lines[2])
-    assert re.match(r"refit with subsets of 8 steps, 20 minibatches \(last loss \S+, c = [0-9.e-]+\)", lines[7])
+    assert re.match(r"refit with subsets of 8 steps, hidden \[16\], 20 minibatches \(last loss \S+, c = [0-9.e-]+\)",
+                    lines[7])
     for block in (lines[3:7], lines[8:12]):  # the run's reward model on a played episode; the refit one on R_B
         changes = [re.search(r"mean r (\S+) a step, the env's control cost (\S+) a step$", line).groups()
                    for line in block]
@@ -1315,8 +1316,10 @@ def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(stra
         assert cost[0] < cost[1] < 0 <= cost[3]  # the control cost grows with the actions (to their bounds)
     assert "on R_B's last 1000 transitions" in lines[7]  # all of the 1000-step run's
     # the refit model's per-step correlation with the dense reward on each episode played above
-    correlations = re.fullmatch(r"per-step correlation with the dense reward: noise 0.0 (\S+), noise 0.1 (\S+)", lines[12])
-    assert len(lines) == 13 and correlations and all(-1 <= float(r) <= 1 for r in correlations.groups())
+    fits = re.fullmatch(r"per-step correlation with the dense reward and slope: "
+                        r"noise 0.0 (\S+) (\S+), noise 0.1 (\S+) (\S+)", lines[12])
+    assert len(lines) == 13 and fits and all(-1 <= float(r) <= 1 for r in fits.groups()[::2])
+    assert all(re.search(r", per-step correlation \S+, slope -?[0-9.]+$", line) for line in lines[:2])
     assert without.returncode == 2 and "without --return-decomposition" in without.stderr
     assert bad.returncode == 2 and "--refit sizes must be" in bad.stderr
 

@@ -1,12 +1,13 @@
 """The return-decomposition probe: how well the learned per-step reward matches the dense one.
 
-    python results/rrd_probe.py RUN_DIR [--noise 0 0.1 0.5] [--seed 1234] [--refit 16 64 256] [--refit-action-cost]
+    python results/rrd_probe.py RUN_DIR [--noise 0 0.1 0.5] [--seed 1234] [--refit 16 64 256] [--refit-steps N]
+                                        [--refit-hidden 64 64] [--refit-action-cost]
 
 RUN_DIR is a sail.py run folder made with --return-decomposition > 0 (config.json and
 checkpoint.pt). Plays one episode of its actor per noise level (Gaussian action noise, as
 --exploration-noise) on a dense-reward copy of the env, and prints the episode's dense return
-against the sum of the reward model's r(s, a, s') over the same steps, and their per-step
-correlation. Then, on the steps of the first of those episodes, how the learned reward moves when
+against the sum of the reward model's r(s, a, s') over the same steps, their per-step correlation
+and the slope of r's least-squares line against the dense reward. Then, on the steps of the first of those episodes, how the learned reward moves when
 the actions are scaled by 0 to 1.5 (clipped to the action bounds; s and s' kept) against how the
 env's control cost moves (its weight times the squared action norm, gymnasium's v5 locomotion
 envs): whether the model learned what actions cost. The learner never sees the dense reward;
@@ -16,7 +17,9 @@ only this probe reads it.
 R_B as sail.py does (`--decomposition-subset K`, --refit-steps minibatches), and prints the same
 action scaling over R_B's most recent 20k transitions (their own s, a, s'): whether a smaller or
 larger subset learns more of what actions cost from the same episodes, and each refit model's per-step
-correlation with the dense reward on the episodes played above. A run made with the
+correlation with the dense reward on the episodes played above and the slope of its least-squares line
+(r per unit of dense reward: 1 where r moves as the env's reward does, 0 where it is flat). Each refit
+has the run's hidden sizes, or --refit-hidden's. A run made with the
 learned action cost (--action-cost reward or reward-and-actor; or any run, with --refit-action-cost)
 refits with it, and both report the learned weight c.
 """
@@ -32,7 +35,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from buffers import ReplayBuffer  # noqa: E402
 from envs import make_env  # noqa: E402
 from credit import RewardModel, train_reward_model  # noqa: E402
-from plumbing import run_folder_checkpoint, run_folder_config  # noqa: E402
+from plumbing import positive_int, run_folder_checkpoint, run_folder_config  # noqa: E402
 from td3 import TD3, make_adam  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -42,6 +45,8 @@ p.add_argument("--seed", type=int, default=1234, help="seed of the probe's env a
 p.add_argument("--refit", type=int, nargs="*", default=[], metavar="K",
                help="subset sizes to train fresh reward models with on the run's R_B")
 p.add_argument("--refit-steps", type=int, default=5000, help="minibatches of each refit")
+p.add_argument("--refit-hidden", type=positive_int, nargs="+", metavar="H", help="hidden sizes of the refit models "
+               "(default: the run's)")
 p.add_argument("--refit-action-cost", action="store_true", help="refit with the learned quadratic action cost "
                "(sail.py's --action-cost) whether or not the run had it")
 args = p.parse_args()
@@ -81,7 +86,7 @@ for noise in args.noise:
         obs, done = next_obs, terminated or truncated
     dense, learned = np.array(dense), np.array(learned)
     print(f"noise {noise}: {len(dense)} steps, dense return {dense.sum():.1f}, sum of r {learned.sum():.1f}, "
-          f"per-step correlation {np.corrcoef(dense, learned)[0, 1]:.2f}")
+          f"per-step correlation {np.corrcoef(dense, learned)[0, 1]:.2f}, slope {np.polyfit(dense, learned, 1)[0]:.2f}")
     played.append(([torch.as_tensor(np.array(x), dtype=torch.float32) for x in zip(*steps)], dense))
 
 
@@ -99,18 +104,21 @@ if learn_action_cost:
     print(f"learned action cost c = {float(reward_model.action_cost()):.4g} per unit of squared action norm "
           f"(the env's control cost weight: {ctrl_cost_weight:.4g})")
 print_action_scaling(reward_model, *played[0][0])
+refit_hidden = args.refit_hidden or config["hidden"]
 recent = (self_buffer.ptr - torch.arange(1, min(20000, self_buffer.size) + 1)) % self_buffer.capacity
 for subset in args.refit:
     torch.manual_seed(args.seed)
-    model = RewardModel(obs_dim, act_dim, config["hidden"], learn_action_cost or args.refit_action_cost)
+    model = RewardModel(obs_dim, act_dim, refit_hidden, learn_action_cost or args.refit_action_cost)
     optimizer = make_adam(model.parameter_groups(config["lr"]), config["lr"])
     with torch.enable_grad():
         for _ in range(args.refit_steps):
             loss = train_reward_model(model, optimizer, self_buffer, config["batch_size"], subset)["decomposition_loss"]
     learned_cost = f", c = {float(model.action_cost()):.4g}" if model.action_cost_rho is not None else ""
-    print(f"refit with subsets of {subset} steps, {args.refit_steps} minibatches (last loss {float(loss):.4g}"
+    print(f"refit with subsets of {subset} steps, hidden {refit_hidden}, "
+          f"{args.refit_steps} minibatches (last loss {float(loss):.4g}"
           f"{learned_cost}), on R_B's last {len(recent)} transitions:")
     print_action_scaling(model, self_buffer.obs[recent], self_buffer.actions[recent], self_buffer.next_obs[recent])
-    print("per-step correlation with the dense reward: " + ", ".join(
-        f"noise {noise} {np.corrcoef(dense, model(*steps).reshape(-1).numpy())[0, 1]:.2f}"
-        for noise, (steps, dense) in zip(args.noise, played)))
+    fits = [(noise, dense, model(*steps).reshape(-1).numpy()) for noise, (steps, dense) in zip(args.noise, played)]
+    print("per-step correlation with the dense reward and slope: " + ", ".join(
+        f"noise {noise} {np.corrcoef(dense, r)[0, 1]:.2f} {np.polyfit(dense, r, 1)[0]:.2f}"
+        for noise, dense, r in fits))
