@@ -7,21 +7,21 @@ RUN_DIR is a sail.py run folder made with --return-decomposition > 0 (config.jso
 checkpoint.pt). Plays one episode of its actor per noise level (Gaussian action noise, as
 --exploration-noise) on a dense-reward copy of the env, and prints the episode's dense return
 against the sum of the reward model's r(s, a, s') over the same steps, their per-step correlation
-and the slope of r's least-squares line against the dense reward. Then, on the steps of the first of those episodes, how the learned reward moves when
-the actions are scaled by 0 to 1.5 (clipped to the action bounds; s and s' kept) against how the
-env's control cost moves (its weight times the squared action norm, gymnasium's v5 locomotion
-envs): whether the model learned what actions cost. The learner never sees the dense reward;
-only this probe reads it.
+and the slope of r's least-squares line against the dense reward (r per unit of dense reward: 1
+where r moves as the env's reward does, 0 where it is flat). Then, on the steps of the first of
+those episodes, how the learned reward moves when the actions are scaled by 0 to 1.5 (clipped to
+the action bounds; s and s' kept) against how the env's control cost moves (its weight times the
+squared action norm, gymnasium's v5 locomotion envs): whether the model learned what actions cost.
+The learner never sees the dense reward; only this probe reads it.
 
 --refit K [K ...] trains, for each subset size K, a fresh reward model on the run's self buffer
-R_B as sail.py does (`--decomposition-subset K`, --refit-steps minibatches), and prints the same
-action scaling over R_B's most recent 20k transitions (their own s, a, s'): whether a smaller or
-larger subset learns more of what actions cost from the same episodes, and each refit model's per-step
-correlation with the dense reward on the episodes played above and the slope of its least-squares line
-(r per unit of dense reward: 1 where r moves as the env's reward does, 0 where it is flat). Each refit
-has the run's hidden sizes, or --refit-hidden's. A run made with the
-learned action cost (--action-cost reward or reward-and-actor; or any run, with --refit-action-cost)
-refits with it, and both report the learned weight c.
+R_B as sail.py does (`--decomposition-subset K`, --refit-steps minibatches; the run's hidden sizes
+or --refit-hidden's), and prints the same action scaling over R_B's most recent 20k transitions
+(their own s, a, s'): whether a smaller or larger subset learns more of what actions cost from the
+same episodes; then the refit model's per-step correlation and slope against the dense reward on
+the episodes played above. A run made with the learned action cost (--action-cost reward or
+reward-and-actor; or any run, with --refit-action-cost) refits with it, and both report the
+learned weight c.
 """
 
 import argparse
