@@ -40,7 +40,7 @@ from credit import RewardModel, return_bonus  # noqa: E402
 from demos import default_demo_path  # noqa: E402
 from discriminator import Discriminator, shaped_reward  # noqa: E402
 from envs import make_env, rollout  # noqa: E402
-from plumbing import run_folder_checkpoint, run_folder_config, positive_int  # noqa: E402
+from plumbing import positive_int, run_folder_checkpoint, run_folder_config  # noqa: E402
 from td3 import TD3  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
