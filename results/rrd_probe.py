@@ -72,22 +72,28 @@ rng = np.random.default_rng(args.seed)
 low, high = (torch.as_tensor(x, dtype=torch.float32) for x in (env.action_space.low, env.action_space.high))
 ctrl_cost_weight = getattr(env.unwrapped, "_ctrl_cost_weight", float("nan"))
 
+
+def agreement(model, steps, dense):
+    """The model's r on an episode's (s, a, s'), its per-step correlation with the dense reward and the slope
+    of r's least-squares line against it."""
+    r = model(*steps).reshape(-1).numpy()
+    return r, np.corrcoef(dense, r)[0, 1], np.polyfit(dense, r, 1)[0]
+
+
 played = []  # per noise level: the episode's (s, a, s') as tensors and its dense rewards
 for noise in args.noise:
     obs, _ = env.reset()
-    dense, learned, steps, done = [], [], [], False
+    dense, steps, done = [], [], False
     while not done:
         action = agent.explore(obs, noise, rng) if noise > 0 else agent.act(obs)
         next_obs, reward, terminated, truncated, _ = env.step(action)
-        learned.append(float(reward_model(*(torch.as_tensor(np.asarray(x, np.float32))[None]
-                                              for x in (obs, action, next_obs)))))
         dense.append(float(reward))
         steps.append((obs, action, next_obs))
         obs, done = next_obs, terminated or truncated
-    dense, learned = np.array(dense), np.array(learned)
-    print(f"noise {noise}: {len(dense)} steps, dense return {dense.sum():.1f}, sum of r {learned.sum():.1f}, "
-          f"per-step correlation {np.corrcoef(dense, learned)[0, 1]:.2f}, slope {np.polyfit(dense, learned, 1)[0]:.2f}")
-    played.append(([torch.as_tensor(np.array(x), dtype=torch.float32) for x in zip(*steps)], dense))
+    played.append(([torch.as_tensor(np.array(x), dtype=torch.float32) for x in zip(*steps)], np.array(dense)))
+    learned, correlation, slope = agreement(reward_model, *played[-1])
+    print(f"noise {noise}: {len(dense)} steps, dense return {sum(dense):.1f}, sum of r {learned.sum():.1f}, "
+          f"per-step correlation {correlation:.2f}, slope {slope:.2f}")
 
 
 def print_action_scaling(model, obs, actions, next_obs):
@@ -118,7 +124,6 @@ for subset in args.refit:
           f"{args.refit_steps} minibatches (last loss {float(loss):.4g}"
           f"{learned_cost}), on R_B's last {len(recent)} transitions:")
     print_action_scaling(model, self_buffer.obs[recent], self_buffer.actions[recent], self_buffer.next_obs[recent])
-    fits = [(noise, dense, model(*steps).reshape(-1).numpy()) for noise, (steps, dense) in zip(args.noise, played)]
+    fits = [(noise, *agreement(model, *episode)[1:]) for noise, episode in zip(args.noise, played)]
     print("per-step correlation with the dense reward and slope: " + ", ".join(
-        f"noise {noise} {np.corrcoef(dense, r)[0, 1]:.2f} {np.polyfit(dense, r, 1)[0]:.2f}"
-        for noise, dense, r in fits))
+        f"noise {noise} {correlation:.2f} {slope:.2f}" for noise, correlation, slope in fits))
