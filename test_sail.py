@@ -1306,8 +1306,8 @@ def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(stra
     heads = [line.split(":")[0] for line in lines]
     assert heads[:2] == ["noise 0.0", "noise 0.1"] and heads[3:7] == scaling and heads[8:12] == scaling
     assert re.match(r"learned action cost c = [0-9.e-]+ per unit of squared action norm", lines[2])
-    assert re.match(r"refit with subsets of 8 steps, hidden \[16\], 20 minibatches \(last loss \S+, c = [0-9.e-]+\)",
-                    lines[7])
+    assert re.match(r"refit with subsets of 8 steps, hidden \[16\], 20 minibatches \(mean loss of the last 20: \S+, "
+                    r"c = [0-9.e-]+\)", lines[7])
     for block in (lines[3:7], lines[8:12]):  # the run's reward model on a played episode; the refit one on R_B
         changes = [re.search(r"mean r (\S+) a step, the env's control cost (\S+) a step$", line).groups()
                    for line in block]
@@ -1319,7 +1319,12 @@ def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(stra
     fits = re.fullmatch(r"per-step correlation with the dense reward and slope: "
                         r"noise 0.0 (\S+) (\S+), noise 0.1 (\S+) (\S+)", lines[12])
     assert len(lines) == 13 and fits and all(-1 <= float(r) <= 1 for r in fits.groups()[::2])
-    assert all(re.search(r", per-step correlation \S+, slope -?[0-9.]+$", line) for line in lines[:2])
+    # what the dense reward would pay in RRD's loss at the refit's K and the run's: less for more steps, and
+    # nothing where the subset is the whole episode
+    terms = [re.search(r": (\d+) steps, .*, per-step correlation \S+, slope -?[0-9.]+; the dense reward's variance "
+                       r"term K = 8 (\S+), K = 64 (\S+)$", line) for line in lines[:2]]
+    assert all(terms) and all(float(t[2]) > float(t[3]) >= 0 for t in terms)
+    assert all((float(t[3]) == 0) == (int(t[1]) <= 64) for t in terms)
     assert without.returncode == 2 and "without --return-decomposition" in without.stderr
     assert bad.returncode == 2 and "--refit sizes must be" in bad.stderr
 

@@ -8,10 +8,13 @@ checkpoint.pt). Plays one episode of its actor per noise level (Gaussian action 
 --exploration-noise) on a dense-reward copy of the env, and prints the episode's dense return
 against the sum of the reward model's r(s, a, s') over the same steps, their per-step correlation
 and the slope of r's least-squares line against the dense reward (r per unit of dense reward: 1
-where r moves as the env's reward does, 0 where it is flat). Then, on the steps of the first of
-those episodes, how the learned reward moves when the actions are scaled by 0 to 1.5 (clipped to
-the action bounds; s and s' kept) against how the env's control cost moves (its weight times the
-squared action norm, gymnasium's v5 locomotion envs): whether the model learned what actions cost.
+where r moves as the env's reward does, 0 where it is flat), and what the dense reward itself would
+pay in RRD's loss for varying within the episode: the variance of the mean of K random steps of T,
+(1 - K/T) Var / K, for the run's K and each --refit K (a reward flat within each episode pays 0).
+Then, on the steps of the first of those episodes, how the learned reward moves when the actions
+are scaled by 0 to 1.5 (clipped to the action bounds; s and s' kept) against how the env's control
+cost moves (its weight times the squared action norm, gymnasium's v5 locomotion envs): whether the
+model learned what actions cost.
 The learner never sees the dense reward; only this probe reads it.
 
 --refit K [K ...] trains, for each subset size K, a fresh reward model on the run's self buffer
@@ -80,6 +83,13 @@ def agreement(model, steps, dense):
     return r, np.corrcoef(dense, r)[0, 1], np.polyfit(dense, r, 1)[0]
 
 
+def variance_term(rewards, subset):
+    """The variance of the mean of `subset` of an episode's steps drawn without replacement: RRD's loss is the
+    whole-episode fit plus this, so a reward flat within each episode pays nothing where the dense one pays it."""
+    steps, subset = len(rewards), min(subset, len(rewards))
+    return (1 - subset / steps) * np.var(rewards, ddof=1) / subset if steps > 1 else 0.0
+
+
 played = []  # per noise level: the episode's (s, a, s') as tensors and its dense rewards
 for noise in args.noise:
     obs, _ = env.reset()
@@ -92,8 +102,11 @@ for noise in args.noise:
         obs, done = next_obs, terminated or truncated
     played.append(([torch.as_tensor(np.array(x), dtype=torch.float32) for x in zip(*steps)], np.array(dense)))
     learned, correlation, slope = agreement(reward_model, *played[-1])
+    variance_terms = ", ".join(f"K = {k} {variance_term(np.array(dense), k):.3g}"
+                               for k in sorted({config["decomposition_subset"], *args.refit}))
     print(f"noise {noise}: {len(dense)} steps, dense return {sum(dense):.1f}, sum of r {learned.sum():.1f}, "
-          f"per-step correlation {correlation:.2f}, slope {slope:.2f}")
+          f"per-step correlation {correlation:.2f}, slope {slope:.2f}; "
+          f"the dense reward's variance term {variance_terms}")
 
 
 def print_action_scaling(model, obs, actions, next_obs):
@@ -116,12 +129,15 @@ for subset in args.refit:
     torch.manual_seed(args.seed)
     model = RewardModel(obs_dim, act_dim, refit_hidden, learn_action_cost or args.refit_action_cost)
     optimizer = make_adam(model.parameter_groups(config["lr"]), config["lr"])
+    losses = []
     with torch.enable_grad():
         for _ in range(args.refit_steps):
-            loss = train_reward_model(model, optimizer, self_buffer, config["batch_size"], subset)["decomposition_loss"]
+            losses.append(train_reward_model(model, optimizer, self_buffer, config["batch_size"], subset)
+                          ["decomposition_loss"])
+    last = torch.stack(losses[-1000:])
     learned_cost = f", c = {float(model.action_cost()):.4g}" if model.action_cost_rho is not None else ""
     print(f"refit with subsets of {subset} steps, hidden {refit_hidden}, "
-          f"{args.refit_steps} minibatches (last loss {float(loss):.4g}"
+          f"{args.refit_steps} minibatches (mean loss of the last {len(last)}: {float(last.mean()):.4g}"
           f"{learned_cost}), on R_B's last {len(recent)} transitions:")
     print_action_scaling(model, self_buffer.obs[recent], self_buffer.actions[recent], self_buffer.next_obs[recent])
     fits = [(noise, *agreement(model, *episode)[1:]) for noise, episode in zip(args.noise, played)]
