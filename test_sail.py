@@ -760,6 +760,8 @@ def test_make_demos_stops_on_sigterm_with_a_checkpoint_that_continues(tmp_path):
     def start_then_stop(signum):
         """Starts the command, waits for its training loop (where the stop handler is in place: on a
         loaded machine the imports alone can take seconds), lets it run, stops it: stdout, stderr."""
+        for path in (out_path, err_path):  # the first run's output would pass for the second's until it starts
+            path.unlink(missing_ok=True)
         proc = start_script(command, out_path, err_path)
         deadline = time.time() + 120
         while not (out_path.exists() and "training the teacher" in out_path.read_text()):
