@@ -131,9 +131,9 @@ class TeacherBuffer:
     the best episodes seen and the threshold never decreases. The authors' FIFO ring would
     instead drop the oldest data, which may be better than what stays.
 
-    keep="pareto" (an experiment) changes only which episode leaves first: the one that the most
+    keep="pareto" (sail.py's default) changes only which episode leaves first: the one that the most
     kept episodes beat on both the return and the return per step, the lowest return among those.
-    Episodes of one length are then ranked by their return alone, as by default; where episodes
+    Episodes of one length are then ranked by their return alone, as by keep="return"; where episodes
     end early, a short fast one (a teacher that runs, then falls) stays beside longer slow ones
     (standing still) until an episode both earns more and earns it faster.
     """

@@ -462,6 +462,10 @@ def read_config(run_dir):
         raise ConfigError(f"cannot read {path}: {first_line(e)}") from None
 
 
+# flags that have left sail.py, with the value today's code always runs: a saved run with another cannot resume
+RETIRED_FLAGS = {"update_every": 1}
+
+
 def resume_config(run_dir, args, given, changeable, script):
     """The saved run's flags, with the `changeable` ones taken anew where given on the command
     line. Any other flag given is a ConfigError: a resumed run cannot honour it, nor can `script`
@@ -485,6 +489,11 @@ def resume_config(run_dir, args, given, changeable, script):
     if missing:
         flags = ", ".join("--" + name.replace("_", "-") for name in missing)
         raise ConfigError(f"--resume {run_dir}: its config.json has no {flags} (a run of older code); start it anew")
+    # a flag that has left the code, saved with a value other than the one the code now always runs
+    changed = sorted(k for k, v in RETIRED_FLAGS.items() if config.get(k, v) != v)
+    if changed:
+        raise ConfigError(f"--resume {run_dir}: it was made with " + ", ".join(
+            f"--{k.replace('_', '-')} {config[k]}" for k in changed) + ", which this code no longer has")
     saved = {k: v for k, v in config.items() if k in vars(args)}  # the command line, the commit: not flags
     anew = {name: getattr(args, name) for name in changeable if name in given}
     return argparse.Namespace(**(vars(args) | saved | anew | {"resume": run_dir}))

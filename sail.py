@@ -52,7 +52,8 @@ from td3 import TD3, make_adam
 
 # Presets of --algo: defaults that flags given still override. The baselines keep their papers' plain learner.
 PLAIN_LEARNER = {"critic_layer_norm": False, "disc_negatives": "all", "return_decomposition": 0.0,
-                 "decomposition_unit": "range", "disc_action_norm": False, "action_cost": "none"}
+                 "decomposition_unit": "range", "disc_action_norm": False, "action_cost": "none",
+                 "teacher_keep": "return"}
 PRESETS = {
     "sail": {},
     "sail-paper": PLAIN_LEARNER | {"return_bonus": 0.0},  # Algorithm 1 as published
@@ -109,7 +110,6 @@ def parse_args(argv=None):
     g.add_argument("--exploration-noise", type=nonneg, default=0.1, help="std of the Gaussian action noise")
     g.add_argument("--buffer-size", type=pos, default=1_000_000, help="capacity of R_B in transitions")
     g.add_argument("--critic-layer-norm", action=on_off, default=True, help="LayerNorm in the critics (RLPD's)")
-    g.add_argument("--update-every", type=pos, default=1, help="env steps per group of as many updates (authors: 1000)")
     g = p.add_argument_group("reward")
     g.add_argument("--reward", choices=["sail", "airl", "env", "none"], default="sail",
                    help="-log(1-D), log D - log(1-D), the sparse env reward, or none (the credit alone)")
@@ -133,7 +133,8 @@ def parse_args(argv=None):
     g = p.add_argument_group("SAIL and its ablations")
     g.add_argument("--alpha", type=float, default=0.5, help="R_E's share of TD3 batches before a promotion (0: no LfD)")
     g.add_argument("--teacher-capacity", type=pos, default=10_000, help="capacity of R_E in transitions")
-    g.add_argument("--teacher-keep", choices=["return", "pareto"], default="return", help="whom a full R_E drops first")
+    g.add_argument("--teacher-keep", choices=["return", "pareto"], default="pareto",
+                   help="whom a full R_E drops first: the lowest return, or one beaten on return and return per step")
     g.add_argument("--fixed-alpha", action="store_true", help="ablation: alpha stays at --alpha")
     g.add_argument("--no-adaptation", action="store_true", help="ablation: R_E is never updated")
     g.add_argument("--disc-negatives", choices=["all", "recent", "recent-after-promotion"],
@@ -361,13 +362,11 @@ def train(args):
                     was_learning = True
 
                     # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)
-                    if s.global_step % args.update_every == 0:
-                        unit = decomposition_unit(args.decomposition_unit, s.return_range, s.rate_range,
-                                                  env.max_episode_steps)
-                        for _ in range(args.update_every):
-                            stats.update(update(parts, s, args, unit))
-                        # stop before a diverged actor acts in the env; the last checkpoint stays good
-                        plumbing.check_finite(stats, f"at step {s.global_step}", run_dir)
+                    unit = decomposition_unit(args.decomposition_unit, s.return_range, s.rate_range,
+                                              env.max_episode_steps)
+                    stats.update(update(parts, s, args, unit))
+                    # stop before a diverged actor acts in the env; the last checkpoint stays good
+                    plumbing.check_finite(stats, f"at step {s.global_step}", run_dir)
 
                 # 5. evaluation of the deterministic policy, the CSV row and a checkpoint
                 if s.global_step % args.eval_freq == 0:

@@ -1219,10 +1219,10 @@ def test_warm_up_waits_for_episodic_returns_where_the_critic_reward_needs_them(t
 def test_promotion_switches_alpha_inside_the_loop(tmp_path, poor_hopper_demos):
     """The poor teacher's return is the lowest of 30 random episodes: the agent's own episodes
     beat it, are promoted, and the dynamic alpha drops from 0.5 to 0 at the first promotion. The
-    small teacher capacity makes the worst episodes leave, so the threshold rises. (--update-every 2000: no
-    TD3 update in the 1000 steps, which only R_E's promotions and alpha are about.)"""
+    small teacher capacity makes the worst episodes leave, so the threshold rises. (--learning-starts 999:
+    random actions and no update but at the last step; the test is about R_E's promotions and alpha.)"""
     proc = run_script("sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos, "--total-timesteps", "1000",
-                      "--learning-starts", "1", "--eval-freq", "20", "--disc-freq", "200", "--update-every", "2000",
+                      "--learning-starts", "999", "--eval-freq", "20", "--disc-freq", "200",
                       "--teacher-capacity", "200", "--output-dir", str(tmp_path), "--run-name", "run", *TINY)
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = read_csv(tmp_path / "run")
@@ -1245,17 +1245,17 @@ def straight_runs(tmp_path_factory, poor_hopper_demos):
     """Side by side: a run of 1000 steps with sail.py's defaults, never interrupted (what every interrupted
     and resumed one must equal); the same run of the paper's SAIL (no return decomposition, plain critics);
     the first run stopped at step 700, which test_resume_equals_an_uninterrupted_run resumes; and the first
-    run with --teacher-keep pareto."""
+    run with --teacher-keep return (R_E drops its lowest return first, the paper's rule)."""
     out = tmp_path_factory.mktemp("straight")
     flags = [*RESUME_FLAGS, "--demos", poor_hopper_demos, "--output-dir", str(out)]
     procs = run_scripts(("sail.py", *flags, "--total-timesteps", "1000", "--run-name", "a"),
                         ("sail.py", *flags, "--algo", "sail-paper", "--total-timesteps", "1000", "--run-name", "paper"),
                         ("sail.py", *flags, "--total-timesteps", "700", "--run-name", "stopped"),
-                        ("sail.py", *flags, "--total-timesteps", "1000", "--teacher-keep", "pareto",
-                         "--run-name", "pareto"))
+                        ("sail.py", *flags, "--total-timesteps", "1000", "--teacher-keep", "return",
+                         "--run-name", "return"))
     for proc in procs:
         assert proc.returncode == 0, proc.stderr[-3000:]
-    return {"straight": out / "a", "paper": out / "paper", "stopped": out / "stopped", "pareto": out / "pareto"}
+    return {"straight": out / "a", "paper": out / "paper", "stopped": out / "stopped", "return": out / "return"}
 
 
 @pytest.fixture(scope="module")
@@ -1450,7 +1450,7 @@ def test_keep_replay_finds_where_the_two_teacher_keep_rules_part(straight_runs):
     that evicted episodes), names the same parting step from either run of a pair, and up to that step the
     two runs are one run. (After it they may still be: R_E is not sampled before --learning-starts.)"""
     replay = os.path.join("results", "keep_replay.py")
-    by_return, by_pareto = run_scripts((replay, str(straight_runs["straight"])), (replay, str(straight_runs["pareto"])))
+    by_pareto, by_return = run_scripts((replay, str(straight_runs["straight"])), (replay, str(straight_runs["return"])))
     parted = []
     for proc in (by_return, by_pareto):
         assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
@@ -1460,7 +1460,7 @@ def test_keep_replay_finds_where_the_two_teacher_keep_rules_part(straight_runs):
     # the poor teacher's 11-step episode, random episodes of many lengths and a 150-step R_E: the rules part
     assert parted[0] and parted[1] and parted[0][1] == parted[1][1]
     step = int(parted[0][1])
-    before = [(a, b) for a, b in zip(learning_rows(straight_runs["straight"]), learning_rows(straight_runs["pareto"]))
+    before = [(a, b) for a, b in zip(learning_rows(straight_runs["straight"]), learning_rows(straight_runs["return"]))
               if int(a["global_step"]) <= step]
     assert before and all(a == b for a, b in before)
 
@@ -1869,6 +1869,12 @@ def test_a_resumed_run_keeps_its_saved_flags_over_todays_defaults(tmp_path):
     (run / "config.json").write_text(json.dumps(older))
     with pytest.raises(ConfigError, match="has no --disc-negatives"):
         plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py")
+    # nor may a run made with a flag that has left the code resume without it
+    (run / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k != "given"} | {"update_every": 1}))
+    assert plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py").total_timesteps == 600
+    (run / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k != "given"} | {"update_every": 2}))
+    with pytest.raises(ConfigError, match="--update-every 2, which this code no longer has"):
+        plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py")
 
 
 def test_loading_refuses_a_file_that_would_run_code(tmp_path, poor_hopper_demos, straight_run):
@@ -1912,7 +1918,7 @@ DEFAULT_CONFIG = {k: v for k, v in vars(sail.parse_args([])).items() if k != "gi
 def test_sail_paper_is_the_defaults_with_each_addition_turned_off_and_the_baselines_keep_the_plain_learner():
     # (--return-decomposition 0 also turns off the learned action cost, which is part of it)
     additions_off = ["--return-bonus", "0", "--return-decomposition", "0", "--no-critic-layer-norm",
-                     "--disc-negatives", "all", "--no-disc-action-norm"]
+                     "--disc-negatives", "all", "--no-disc-action-norm", "--teacher-keep", "return"]
     paper, off = vars(sail.parse_args(["--algo", "sail-paper"])), vars(sail.parse_args(additions_off))
     # what still differs is the preset and its name, and a flag that means nothing with its addition off
     assert {k for k in paper if k != "given" and paper[k] != off[k]} == {"algo", "method", "decomposition_unit"}
