@@ -49,11 +49,12 @@ LN_ONPOLICY_PROMOTION = [*BONUS, *LN_ONPOLICY_FLAGS]
 # the layer-normed critics, the on-policy D, the rate-unit return decomposition and D's normalised actions: with the
 # return bonus, sail.py's defaults until the learned action cost joined them
 DAN_FLAGS = [*LN_ONPOLICY_FLAGS, "--return-decomposition", "1", "--decomposition-unit", "rate", "--disc-action-norm"]
-# those and the learned action cost, in the reward and in the actor's loss, with R_E dropping its lowest return
-# first: sail.py's defaults until R_E's Pareto rule joined them
-ACTOR_COST = [*DAN_FLAGS, "--action-cost", "reward-and-actor", "--teacher-keep", "return"]
+# those and the learned action cost, in the reward and in the actor's loss
+COST_ACTOR_FLAGS = [*DAN_FLAGS, "--action-cost", "reward-and-actor"]
+# with R_E dropping its lowest return first: sail.py's defaults until R_E's Pareto rule joined them
+ACTOR_COST = [*COST_ACTOR_FLAGS, "--teacher-keep", "return"]
 # sail.py's defaults: the same with R_E's Pareto rule (`pareto-teacher` chose it)
-DEFAULTS = [*DAN_FLAGS, "--action-cost", "reward-and-actor", "--teacher-keep", "pareto"]
+DEFAULTS = [*COST_ACTOR_FLAGS, "--teacher-keep", "pareto"]
 # the earlier defaults: the same without the learned action cost
 FIVE_ADDITIONS = [*DAN_FLAGS, "--action-cost", "none", "--teacher-keep", "return"]
 # the defaults before R_E's Pareto rule, 300k steps
