@@ -222,6 +222,12 @@ GRIDS = {
         "sail-dan-cost-actor": SAIL_ACTOR_COST,
         "sail-pareto": sail("SAIL (--teacher-keep pareto)", *OFF_POLICY, *DEFAULTS)},
         [9, 10, 11]),
+    # the confirmation of `--teacher-keep pareto`, the defaults since `pareto-teacher`, on the seeds that no
+    # decision saw (6-8; `confirm` ran them with `return`): whatever they show is the result, with no rerun and no
+    # change of the defaults on their account. HalfCheetah-v5 and Swimmer-v5 are not run: every episode there
+    # lasts 1000 steps, where the two rules keep the same episodes, so `confirm`'s runs are theirs
+    "confirm-pareto": grid(["Hopper-v5", "Walker2d-v5", "Ant-v5"], {
+        "sail-pareto": sail("SAIL (--teacher-keep pareto)", *OFF_POLICY, *DEFAULTS)}, [6, 7, 8]),
     # Which policy sail.py should score and save: TD3's actor or its Polyak-averaged target actor (a smoothed
     # actor; Hopper-v5 defaults seed 9 at 300k: the actor falls after ~19 steps, the target runs 1000). Measured on
     # the last checkpoint of each run of `pareto-teacher` and of this grid (HalfCheetah-v5 and Swimmer-v5, where
