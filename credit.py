@@ -63,8 +63,8 @@ class RewardModel(nn.Module):
 
 
 def train_reward_model(reward_model, optimizer, self_buffer, batch_size, subset_size):
-    """One minibatch of randomized return decomposition: for batch_size / subset_size finished
-    episodes of R_B, the mean of r over `subset_size` random steps (an unbiased estimate of the mean
+    """One minibatch of randomized return decomposition: for batch_size / subset_size (at least one)
+    finished episodes of R_B, the mean of r over `subset_size` random steps (an unbiased estimate of the mean
     over all steps) is fitted to the episodic return over the episode's length (RRD's loss, per step)."""
     device = next(reward_model.parameters()).device
     num_episodes = max(1, batch_size // subset_size)

@@ -119,7 +119,8 @@ def parse_args(argv=None):
                    help="learned reward's unit: range of returns per step, or over the time limit (RRD's)")
     g.add_argument("--action-cost", choices=["none", "reward", "reward-and-actor"], default="reward-and-actor",
                    help="a learned c ||a||^2 in the learned reward, and also in the actor's loss")
-    g.add_argument("--decomposition-subset", type=pos, default=64, help="steps per episode per minibatch (RRD's K)")
+    g.add_argument("--decomposition-subset", type=pos, default=64, help="steps per episode per minibatch (RRD's K; "
+                   "at least the episode length: whole episodes, one a minibatch)")
     g.add_argument("--time-feature", action=on_off, default=True, help="append 1 - t/T to the observation")
     g.add_argument("--absorbing", action=on_off, default=False, help="DAC's absorbing states")
     g = p.add_argument_group("discriminator")
@@ -166,8 +167,6 @@ def check_args(p, args):
         if "action_cost" in args.given:
             p.error(f"--action-cost {args.action_cost} is part of the learned reward: it needs --return-decomposition")
         args.action_cost = "none"
-    if args.return_decomposition > 0 and args.decomposition_subset > args.batch_size:
-        p.error(f"--decomposition-subset {args.decomposition_subset} is more than --batch-size {args.batch_size}")
     if args.buffer_size < 1001:
         p.error("--buffer-size must hold at least one whole episode (1001 transitions)")
     if args.eval_freq > args.total_timesteps and not args.resume:

@@ -46,7 +46,8 @@ p.add_argument("run_dir")
 p.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.1, 0.5], help="action noise std per episode")
 p.add_argument("--seed", type=int, default=1234, help="seed of the probe's env and noise")
 p.add_argument("--refit", type=int, nargs="*", default=[], metavar="K",
-               help="subset sizes to train fresh reward models with on the run's R_B")
+               help="subset sizes to train fresh reward models with on the run's R_B (one at least the episode "
+               "length fits whole episodes, one per minibatch)")
 p.add_argument("--refit-steps", type=int, default=5000, help="minibatches of each refit")
 p.add_argument("--refit-hidden", type=positive_int, nargs="+", metavar="H", help="hidden sizes of the refit models "
                "(default: the run's)")
@@ -56,8 +57,8 @@ args = p.parse_args()
 config = run_folder_config(p, args.run_dir)
 if not config.get("return_decomposition"):
     p.error(f"{args.run_dir} was made without --return-decomposition: it has no reward model")
-if any(k < 1 or k > config["batch_size"] for k in args.refit) or args.refit_steps < 1:
-    p.error(f"--refit sizes must be 1 to the run's batch size {config['batch_size']}, --refit-steps at least 1")
+if any(k < 1 for k in args.refit) or args.refit_steps < 1:
+    p.error("--refit sizes must be at least 1, --refit-steps too")
 torch.set_num_threads(1)
 torch.set_grad_enabled(False)
 env = make_env(config["env"], args.seed, sparse=False, time_feature=config["time_feature"],
