@@ -1028,6 +1028,11 @@ def test_episode_subsets_hold_steps_of_one_finished_episode_and_mask_overwritten
         assert len(set(steps)) == len(steps) and (ret != 1.0 or sorted(steps) == list(range(10, 15)))
         assert ret != 2.0 or len(steps) == 8
     assert (mask[returns == 0.0] == 0).any()
+    # a subset at least as long as the episodes (K >= T): each row holds its whole episode, padding masked
+    obs, _, _, mask, returns, lengths = buffer.sample_episode_subsets(100, 30)
+    assert obs.shape == (100, 30, 1) and (mask.sum(1)[returns > 0] == lengths[returns > 0]).all()
+    for episode, kept, ret in zip(obs[..., 0], mask, returns.tolist()):
+        assert ret == 0.0 or sorted(episode[kept.bool()].tolist()) == list(first[ret])
     copy = ReplayBuffer(obs_dim=1, act_dim=1, capacity=20)
     copy.load_state_dict(buffer.state_dict())
     assert torch.equal(copy.episode_starts, buffer.episode_starts) and torch.equal(copy.episode_lengths,
