@@ -7,6 +7,8 @@ for a demo file. Writes are atomic: an interrupted make_demos.py leaves no broke
 """
 
 import os
+import shutil
+import tempfile
 import warnings
 
 import numpy as np
@@ -167,22 +169,38 @@ def check_minari_id(dataset_id):
 
 
 def save_minari(dataset_id, episodes, env_id):
-    """Writes episodes (dicts as envs.rollout returns them) as a Minari dataset in the local store."""
+    """Writes episodes (dicts as envs.rollout returns them) as a Minari dataset in the local store. Minari
+    writes it in a staging store beside the real one, from where it moves in whole: an interrupted write
+    leaves no half-written dataset in the store."""
     minari = _minari()
     from minari.data_collector.episode_buffer import EpisodeBuffer
+    from minari.storage.datasets_root_dir import get_dataset_path
     buffers = [EpisodeBuffer(observations=np.concatenate([ep["observations"], ep["next_observations"][-1:]]),
                              actions=np.asarray(ep["actions"]), rewards=list(ep["rewards"]),
                              terminations=[False] * (len(ep["actions"]) - 1) + [ep["terminated"]],
                              truncations=[False] * (len(ep["actions"]) - 1) + [ep["truncated"]])
                for ep in episodes]
+    store = os.path.abspath(get_dataset_path())
+    staging = tempfile.mkdtemp(prefix=".minari-staging-", dir=os.path.dirname(store))  # same file system
+    store_variable = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = staging
     try:
         with warnings.catch_warnings():  # minari asks for author, e-mail, code links: not known here
             warnings.simplefilter("ignore", UserWarning)
-            return minari.create_dataset_from_buffers(
+            minari.create_dataset_from_buffers(
                 dataset_id, buffers, env=env_id, eval_env=env_id, algorithm_name="make_demos.py (TD3 teacher)",
                 description=f"{len(episodes)} episodes of a sub-optimal TD3 teacher on {env_id}, recorded by make_demos.py")
+        target = os.path.join(store, dataset_id)
+        os.makedirs(os.path.dirname(target), exist_ok=True)
+        os.rename(os.path.join(staging, dataset_id), target)  # refuses a dataset there already
     except Exception as e:  # e.g. the id was taken meanwhile
         raise ConfigError(f"cannot write the Minari dataset {dataset_id}: {first_line(e)}") from None
+    finally:
+        if store_variable is None:
+            os.environ.pop("MINARI_DATASETS_PATH")
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = store_variable
+        shutil.rmtree(staging, ignore_errors=True)
 
 
 def _last_flag(length, flag):

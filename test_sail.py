@@ -522,6 +522,27 @@ def test_minari_datasets_round_trip_as_teacher_episodes(tmp_path, monkeypatch):
     assert trained.returncode == 0 and "teacher: 1 episode," in trained.stdout, trained.stderr[-3000:]
 
 
+def test_an_interrupted_minari_write_leaves_no_dataset_in_the_store(tmp_path, monkeypatch):
+    import minari
+    from demos import save_minari
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "store"))
+    write = minari.create_dataset_from_buffers
+
+    def write_then_interrupt(*args, **kwargs):  # Ctrl-C once Minari's files are on disk
+        write(*args, **kwargs)
+        raise KeyboardInterrupt
+    monkeypatch.setattr(minari, "create_dataset_from_buffers", write_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        save_minari("test/hopper/teacher-v0", recorded_episodes(), "Hopper-v5")
+    assert os.environ["MINARI_DATASETS_PATH"] == str(tmp_path / "store")
+    assert os.listdir(tmp_path) == ["store"] and minari.list_local_datasets() == {}
+    with pytest.raises(ConfigError, match="local Minari store"):
+        load_demos("test/hopper/teacher-v0", "Hopper-v5", 11, 3)
+    monkeypatch.setattr(minari, "create_dataset_from_buffers", write)
+    save_minari("test/hopper/teacher-v0", recorded_episodes(), "Hopper-v5")
+    assert list(minari.list_local_datasets()) == ["test/hopper/teacher-v0"] and os.listdir(tmp_path) == ["store"]
+
+
 @pytest.mark.parametrize("env_id", sorted(SHIPPED))
 def test_shipped_demos_load_and_are_sub_optimal(env_id):
     env = make_env(env_id, seed=0, time_feature=False)
