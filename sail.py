@@ -17,13 +17,14 @@ Algorithm 1 of the paper, as the loop in `train` runs it:
 
 The paper's ablations are flags (--fixed-alpha, --alpha 0, --no-adaptation, --disc-negatives recent);
 DAC, TD3 on the sparse reward, IRCR and RRD are presets (--algo); `--algo sail-paper` is the paper's SAIL
-exactly. The defaults add six things, each a flag, each using only what the sparse env gives at episode ends:
+exactly. The defaults add seven things, each a flag, each using only what the sparse env gives at episode ends:
 - return bonus (--return-bonus, credit.py): r' + the episode's scaled return (step 4);
 - return decomposition (--return-decomposition, credit.py): r' + a learned per-step reward (step 4);
 - learned action cost (--action-cost): c ||a||^2 in that reward and in the actor's loss (step 4);
 - LayerNorm in the critics (--critic-layer-norm, td3.py);
 - on-policy D after the first promotion (--disc-negatives): recent steps are D's negatives (step 3);
 - D's actions normalised as its states (--disc-action-norm, discriminator.py).
+- Pareto R_E (--teacher-keep pareto, buffers.py): a full R_E drops an episode beaten on return and on return per step.
 """
 
 import os
