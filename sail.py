@@ -23,8 +23,8 @@ exactly. The defaults add seven things, each a flag, each using only what the sp
 - learned action cost (--action-cost): c ||a||^2 in that reward and in the actor's loss (step 4);
 - LayerNorm in the critics (--critic-layer-norm, td3.py);
 - on-policy D after the first promotion (--disc-negatives): recent steps are D's negatives (step 3);
-- D's actions normalised as its states (--disc-action-norm, discriminator.py).
-- Pareto R_E (--teacher-keep pareto, buffers.py): a full R_E drops an episode beaten on return and on return per step.
+- D's actions normalised as its states (--disc-action-norm, discriminator.py);
+- Pareto R_E (--teacher-keep pareto, buffers.py): a full R_E drops one beaten on return and return per step (step 2).
 """
 
 import os
