@@ -108,6 +108,7 @@ def parse_args(argv=None):
     g.add_argument("--policy-noise", type=nonneg, default=0.2, help="target policy smoothing noise std")
     g.add_argument("--noise-clip", type=nonneg, default=0.5, help="target policy smoothing noise clip")
     g.add_argument("--policy-delay", type=pos, default=2, help="critic updates per actor update")
+    g.add_argument("--utd", type=pos, default=1, help="updates (reward model, TD3) per env step after the warm-up")
     g.add_argument("--exploration-noise", type=nonneg, default=0.1, help="std of the Gaussian action noise")
     g.add_argument("--buffer-size", type=pos, default=1_000_000, help="capacity of R_B in transitions")
     g.add_argument("--critic-layer-norm", action=on_off, default=True, help="LayerNorm in the critics (RLPD's)")
@@ -355,16 +356,16 @@ def train(args):
                     if use_demos and (not was_learning or (s.global_step - args.learning_starts) % args.disc_freq == 0):
                         recent = args.disc_negatives == "recent" or (args.disc_negatives == "recent-after-promotion"
                                                                      and s.first_promotion_step is not None)
-                        stats.update(train_discriminator(
-                            disc, parts["disc_optimizer"], teacher_buffer, self_buffer, args.disc_steps,
-                            args.batch_size, args.entropy_coef, args.grad_penalty,
-                            args.on_policy_window if recent else None))
+                        stats.update(train_discriminator(disc, parts["disc_optimizer"], teacher_buffer, self_buffer,
+                                                         args.disc_steps, args.batch_size, args.entropy_coef,
+                                                         args.grad_penalty, args.on_policy_window if recent else None))
                     was_learning = True
 
                     # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)
                     unit = decomposition_unit(args.decomposition_unit, s.return_range, s.rate_range,
                                               env.max_episode_steps)
-                    stats.update(update(parts, s, args, unit))
+                    for _ in range(args.utd):  # more than one: RLPD's update-to-data ratio
+                        stats.update(update(parts, s, args, unit))
                     # stop before a diverged actor acts in the env; the last checkpoint stays good
                     plumbing.check_finite(stats, f"at step {s.global_step}", run_dir)
 

@@ -17,7 +17,7 @@ import cpu_kernels
 from buffers import ReplayBuffer, TeacherBuffer, mixed_batch
 from demos import load_demos, save_demos
 from envs import absorbing_state, add_features, evaluate_policy, get_env_state, make_env, rollout, set_env_state
-from plumbing import ConfigError
+from plumbing import ADDED_FLAGS, ConfigError
 from td3 import TD3, make_adam
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -1232,14 +1232,17 @@ def test_warm_up_waits_for_episodic_returns_where_the_critic_reward_needs_them(t
     """Pendulum's episodes last 200 steps, longer than --learning-starts 50. The return bonus
     (IRCR, no teacher) scales by the range of returns seen, which has two ends once a second
     episode has ended, at step 400: its updates start there. TD3 on the env reward needs no
-    return and starts at 50."""
+    return and starts at 50. With --utd 2, two updates follow each env step from there."""
     flags = ["--env", "Pendulum-v1", "--total-timesteps", "600", "--learning-starts", "50", "--eval-freq", "600",
              "--output-dir", str(tmp_path), *TINY]
-    ircr, td3 = run_scripts(("sail.py", *flags, "--algo", "ircr", "--run-name", "ircr"),
-                            ("sail.py", *flags, "--algo", "td3", "--run-name", "td3"))
-    assert ircr.returncode == 0 and td3.returncode == 0, (ircr.stderr + td3.stderr)[-3000:]
+    ircr, td3, utd2 = run_scripts(("sail.py", *flags, "--algo", "ircr", "--run-name", "ircr"),
+                                  ("sail.py", *flags, "--algo", "td3", "--run-name", "td3"),
+                                  ("sail.py", *flags, "--algo", "td3", "--utd", "2", "--run-name", "utd2"))
+    assert ircr.returncode == 0 and td3.returncode == 0 and utd2.returncode == 0, \
+        (ircr.stderr + td3.stderr + utd2.stderr)[-3000:]
     assert int(read_csv(tmp_path / "ircr")[-1]["updates"]) == 600 - 400 + 1
     assert int(read_csv(tmp_path / "td3")[-1]["updates"]) == 600 - 50 + 1
+    assert int(read_csv(tmp_path / "utd2")[-1]["updates"]) == 2 * (600 - 50 + 1)
 
 
 def test_promotion_switches_alpha_inside_the_loop(tmp_path, poor_hopper_demos):
@@ -1666,7 +1669,7 @@ def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos, caps
                   "--output-dir", str(blocker / "runs")]):
         assert_one_line_error(main_in_process(sail.main, argv, capsys))
     # the flags of the experiments that left the code, and the flags merged into others
-    for removed in (["--noise-beta", "1"], ["--n-step", "3"], ["--utd", "2"], ["--bc-weight", "1"],
+    for removed in (["--noise-beta", "1"], ["--n-step", "3"], ["--bc-weight", "1"],
                     ["--action-l2", "1"], ["--action-budget", "teacher"], ["--return-scale", "rank"],
                     ["--alpha-anneal-steps", "100"], ["--no-contact-forces"], ["--deploy", "target"], ["--no-lfd"],
                     ["--on-policy-disc"], ["--decomposition-action-cost"], ["--actor-action-cost"],
@@ -1895,6 +1898,10 @@ def test_a_resumed_run_keeps_its_saved_flags_over_todays_defaults(tmp_path):
     (run / "config.json").write_text(json.dumps(older))
     with pytest.raises(ConfigError, match="has no --disc-negatives"):
         plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py")
+    # but one added since with the value the older code always ran: that value, not today's default
+    (run / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k not in ("given", "utd")}))
+    assert plumbing.resume_config(str(run), sail.parse_args(["--resume", str(run), "--utd", "3"]), set(),
+                                  sail.RESUMABLE, "sail.py").utd == 1
     # nor may a run made with a flag that has left the code resume without it
     (run / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k != "given"} | {"update_every": 1}))
     assert plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py").total_timesteps == 600
@@ -2266,7 +2273,7 @@ def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
                 args = vars(sail.parse_args(flags))
                 keys = [key for key in args if key not in sail.SETUP and key != "given"] + [
                     "method", "env", "seed", "num_demos"]
-                saved = {key: config.get(key, "(missing)") for key in keys}
+                saved = {key: config.get(key, ADDED_FLAGS.get(key, "(missing)")) for key in keys}
                 wanted = {key: args[key] for key in keys}
                 assert saved == wanted, (path, {key: (saved[key], wanted[key]) for key in keys
                                                 if saved[key] != wanted[key]})
