@@ -277,12 +277,12 @@ GRIDS = {
     # steps (7546 in Tianshou's MuJoCo benchmark, github.com/thu-ml/tianshou, examples/mujoco): the goal of 8000
     # is above what TD3 reaches with the env's own per-step reward, so no better learned reward reaches it at one
     # update per step. It costs time: the updates are nearly all of an env step's time (results/README.md,
-    # Timings), so nearly twice the training time. The rule, fixed before these runs (final = mean of the last 5 evaluations,
-    # seeds 9-11, on top of the defaults with K = 64): --utd 2 becomes the default if its 3-seed mean is above the
-    # baseline's (`pareto-teacher`'s sail-pareto and `deploy-target`'s runs) by more than 5% on at least 3 of the
-    # 5 envs and lower by more than 5% on none: for its cost, a tie does not count. HalfCheetah-v5 and Hopper-v5
-    # run first: if either's mean is more than 5% lower, or neither's more than 5% higher, the other envs are not
-    # run and --utd 2 is not adopted
+    # Timings), so nearly twice the training time. The rule, fixed before these runs (final = mean of the last
+    # 5 evaluations, seeds 9-11, on top of the defaults with K = 64): --utd 2 becomes the default if its 3-seed
+    # mean is above the baseline's (`pareto-teacher`'s sail-pareto and `deploy-target`'s runs) by more than 5% on
+    # at least 3 of the 5 envs and lower by more than 5% on none: for its cost, a tie does not count.
+    # HalfCheetah-v5 and Hopper-v5 run first: if either's mean is more than 5% lower, or neither's more than 5%
+    # higher, the other envs are not run and --utd 2 is not adopted
     "utd2": [line for env in ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Swimmer-v5"] for line in grid(
         [env], {"sail-pareto-utd2": sail("SAIL (--teacher-keep pareto --utd 2)", *OFF_POLICY, *DEFAULTS,
                                          "--utd", "2")}, [9, 10, 11])],
