@@ -2252,7 +2252,7 @@ def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
     grid line gives sail.py as it is now: a default that changes must leave the grids of the older runs
     writing the old value out. Every committed run is some grid line's, named as a new run of that line is."""
     folders = ("runs", os.path.join("long", "runs"), "learning", "weak-teacher", "pareto-teacher", "deploy-target",
-               "decomposition-subset", "weak-k256", "decomposition-whole")
+               "decomposition-subset", "weak-k256", "decomposition-whole", "utd2")
     committed = {os.path.join(folder, name) for folder in folders
                  for name in os.listdir(os.path.join(HERE, "results", folder))
                  if os.path.isdir(os.path.join(HERE, "results", folder, name))}
