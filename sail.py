@@ -278,7 +278,7 @@ def start(args, parts, device):
         for ret, data in parts["teacher_buffer"].episodes:
             s.record_return(ret, len(data[0]))
         obs, _ = parts["env"].env.reset()
-        config = {k: v for k, v in vars(args).items() if k != "given"} | {"script": "sail.py"}
+        config = vars(args) | {"script": "sail.py", "kernels_chosen": kernels}  # make_run_dir drops "given"
         run_dir = plumbing.make_run_dir(args.output_dir, args.run_name or plumbing.run_name(
             args.env, args.algo, args.seed), config)
     cpu_kernels.apply(s.kernels, [*agent.networks(), disc, *([reward_model] if reward_model else [])])
