@@ -2254,18 +2254,17 @@ def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
     writing the old value out. Every committed run outside results/archive/ is some grid line's, named as a new run
     of that line is."""
     results = os.path.join(HERE, "results")
-    folders = {os.path.relpath(os.path.dirname(os.path.dirname(path)), results)  # archive/: their code left
+    folders = {os.path.relpath(os.path.dirname(os.path.dirname(path)), results)
                for path in glob.glob(os.path.join(results, "**", "config.json"), recursive=True)}
-    folders = sorted(folder for folder in folders if folder.split(os.sep)[0] != "archive")
+    folders = sorted(folder for folder in folders if folder.split(os.sep)[0] != "archive")  # their code left
     assert {"runs", os.path.join("long", "runs"), "utd2"} <= set(folders), folders
-    committed = {os.path.join(folder, name) for folder in folders
-                 for name in os.listdir(os.path.join(HERE, "results", folder))
-                 if os.path.isdir(os.path.join(HERE, "results", folder, name))}
+    committed = {os.path.join(folder, name) for folder in folders for name in os.listdir(os.path.join(results, folder))
+                 if os.path.isdir(os.path.join(results, folder, name))}
     found, checked = set(), 0
     for entries in load_grid_module().GRIDS.values():
         for name, script, flags in entries:
             for folder in folders:
-                path = os.path.join(HERE, "results", folder, name, "config.json")
+                path = os.path.join(results, folder, name, "config.json")
                 if not os.path.isfile(path):
                     continue
                 found.add(os.path.join(folder, name))
