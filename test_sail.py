@@ -1451,6 +1451,26 @@ def test_early_end_probe_on_ant_shows_the_reward_by_steps_to_a_flip_and_the_rest
         "--rest-when-upside-down is for Ant-v5 runs")
 
 
+def test_actor_drift_probe_measures_the_actor_against_its_target_on_the_targets_states(tmp_path, straight_run):
+    """results/actor_drift.py: the target actor's episodes, then on their states the actor's distance from the
+    target (> 0 once the actor has stepped: the target moves by tau of the way), the critic at both actions and
+    Adam's |m| / sqrt(v); a folder that is not a run is one error line."""
+    probe = os.path.join("results", "actor_drift.py")
+    proc, missing = run_scripts((probe, str(straight_run), "--episodes", "2"), (probe, str(tmp_path)))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stdout.splitlines()
+    assert re.match(r"Hopper-v5 at step 1000: the target actor's episodes, returns -?\d+, -?\d+; lengths \d+, \d+$",
+                    lines[0]), lines[0]
+    drift = re.match(r"on their (\d+) states: mean \|actor - target\| per action entry (\d\.\d{3}) \(half ranges\); "
+                     r"at the bounds: actor \d\.\d{3}, target \d\.\d{3}$", lines[1])
+    lengths = [int(n) for n in lines[0].split("lengths ")[1].split(", ")]
+    assert drift and int(drift[1]) == sum(lengths) and 0 < float(drift[2]) < 2, lines[1]
+    assert re.match(r"critic's min\(Q1, Q2\): at the actor's actions -?\d+\.\d, at the target's -?\d+\.\d, "
+                    r"mean \|difference\| \d+\.\d\d$", lines[2]), lines[2]
+    assert [line.split(":")[0] for line in lines[3:]] == ["actor's Adam", "critic's Adam"]
+    assert missing.returncode == 2 and "has no config.json" in missing.stderr.strip().splitlines()[-1]
+
+
 def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     probe = os.path.join("results", "early_ends.py")
     proc, missing, resting = run_scripts((probe, str(straight_run), "--episodes", "3"), (probe, str(tmp_path)),

@@ -1,0 +1,58 @@
+"""The actor's drift: how far the actor is from its Polyak-averaged target, and what the critic says about it.
+
+    python results/actor_drift.py RUN_DIR [--episodes 3] [--seed 1000]
+
+RUN_DIR is a sail.py run folder (config.json and checkpoint.pt). Plays --episodes episodes of the
+deterministic target actor and prints their returns and lengths; then, on their states, the mean
+|actor(s) - target(s)| per action entry (in units of half the action range), the share of action
+entries at the bounds (|tanh| > 0.99) of each, and the critic's min(Q1, Q2) at the actor's and at
+the target's actions: where the two agree, the critic is flat between the two actions. Last, the
+median over parameters of Adam's |m| / sqrt(v) for the actor and the critics: about 0.15 where a
+gradient is zero-mean noise of a steady size (the stationary std of m with beta1 = 0.9 is
+sqrt(0.1 / 1.9) of the gradient's; less where the size varies), near 1 where it keeps its sign.
+Adam's step is lr times that ratio, whatever the gradient's size.
+"""
+
+import argparse
+import os
+import sys
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from envs import make_env, rollout  # noqa: E402
+from plumbing import positive_int, run_folder_checkpoint, run_folder_config  # noqa: E402
+from td3 import TD3  # noqa: E402
+
+p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+p.add_argument("run_dir")
+p.add_argument("--episodes", type=positive_int, default=3, help="episodes of the target actor")
+p.add_argument("--seed", type=int, default=1000, help="seed of the probe's env")
+args = p.parse_args()
+config = run_folder_config(p, args.run_dir)
+torch.set_num_threads(1)
+torch.set_grad_enabled(False)
+env = make_env(config["env"], args.seed, time_feature=config["time_feature"], absorbing=config["absorbing"])
+agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low, env.action_space.high,
+            hidden=config["hidden"], critic_layer_norm=config.get("critic_layer_norm", False))
+checkpoint = run_folder_checkpoint(p, args.run_dir, {"agent": agent})
+
+episodes = [rollout(env, lambda obs: agent.act(obs, target=True)) for _ in range(args.episodes)]
+print(f"{config['env']} at step {checkpoint['loop']['global_step']}: the target actor's episodes, returns "
+      + ", ".join(f"{e['episodic_return']:.0f}" for e in episodes) + "; lengths "
+      + ", ".join(str(e["length"]) for e in episodes))
+states = torch.as_tensor(np.concatenate([e["observations"] for e in episodes]), dtype=torch.float32)
+scale, bias = agent.actor.action_scale, agent.actor.action_bias
+actions, target_actions = agent.actor(states), agent.actor_target(states)
+at_bounds = [(((a - bias) / scale).abs() > 0.99).float().mean() for a in (actions, target_actions)]
+print(f"on their {len(states)} states: mean |actor - target| per action entry "
+      f"{((actions - target_actions) / scale).abs().mean():.3f} (half ranges); at the bounds: actor "
+      f"{at_bounds[0]:.3f}, target {at_bounds[1]:.3f}")
+q_actor, q_target = (torch.min(*agent.critic(states, a)) for a in (actions, target_actions))
+print(f"critic's min(Q1, Q2): at the actor's actions {q_actor.mean():.1f}, at the target's {q_target.mean():.1f}, "
+      f"mean |difference| {(q_actor - q_target).abs().mean():.2f}")
+for name in ("actor_optimizer", "critic_optimizer"):
+    state = checkpoint["agent"][name]["state"].values()
+    ratio = torch.cat([(s["exp_avg"].abs() / (s["exp_avg_sq"].sqrt() + 1e-8)).flatten() for s in state])
+    print(f"{name.split('_')[0]}'s Adam: median |m| / sqrt(v) {ratio.median():.3f}")
