@@ -248,10 +248,9 @@ def build(args, device, use_demos):
     teacher_buffer = (load_teacher_buffer(args.demos or default_demo_path(args.env), args.env, env, args.num_demos,
                                           args.teacher_capacity, args.time_feature, args.absorbing, args.teacher_keep)
                       if use_demos and not args.resume else TeacherBuffer(args.teacher_capacity, args.teacher_keep))
-    agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, hidden=args.hidden, lr=args.lr,
-                actor_lr=args.actor_lr, gamma=args.gamma, tau=args.tau, policy_noise=args.policy_noise,
-                noise_clip=args.noise_clip, policy_delay=args.policy_delay, device=device,
-                critic_layer_norm=args.critic_layer_norm)
+    agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, args.hidden, args.lr, args.actor_lr,
+                gamma=args.gamma, tau=args.tau, policy_noise=args.policy_noise, noise_clip=args.noise_clip,
+                policy_delay=args.policy_delay, device=device, critic_layer_norm=args.critic_layer_norm)
     self_buffer = ReplayBuffer(obs_dim, act_dim, args.buffer_size)
     disc = Discriminator(obs_dim, act_dim, args.disc_hidden, args.disc_action_norm).to(device)
     parts = {"agent": agent, "disc": disc, "disc_optimizer": make_adam(disc.parameters(), args.disc_lr),

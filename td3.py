@@ -79,9 +79,9 @@ def make_adam(params, lr):
 
 
 class TD3:
-    def __init__(self, obs_dim, act_dim, action_low, action_high, hidden=(256, 256), lr=3e-4,
+    def __init__(self, obs_dim, act_dim, action_low, action_high, hidden=(256, 256), lr=3e-4, actor_lr=None,
                  gamma=0.99, tau=0.005, policy_noise=0.2, noise_clip=0.5, policy_delay=2,
-                 device="cpu", critic_layer_norm=False, actor_lr=None):
+                 device="cpu", critic_layer_norm=False):
         self.gamma, self.tau, self.policy_delay = gamma, tau, policy_delay
         self.device = torch.device(device)
         self.actor = Actor(obs_dim, act_dim, hidden, action_low, action_high).to(self.device)
