@@ -310,8 +310,7 @@ def train(args):
 
         def count_time():  # training seconds since the last call (evaluations are not counted)
             nonlocal clock
-            now = time.perf_counter()
-            s.train_time, clock = s.train_time + now - clock, now
+            s.train_time, clock = s.train_time + (now := time.perf_counter()) - clock, now
 
         def save_checkpoint():
             plumbing.save_checkpoint(os.path.join(run_dir, "checkpoint.pt"), parts, loop=dataclasses.asdict(s),
