@@ -21,22 +21,16 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from envs import make_env, rollout  # noqa: E402
-from plumbing import positive_int, run_folder_checkpoint, run_folder_config  # noqa: E402
-from td3 import TD3  # noqa: E402
+from envs import rollout  # noqa: E402
+from plumbing import positive_int  # noqa: E402
+from run_folder import load_agent  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
 p.add_argument("--episodes", type=positive_int, default=3, help="episodes of the target actor")
 p.add_argument("--seed", type=int, default=1000, help="seed of the probe's env")
 args = p.parse_args()
-config = run_folder_config(p, args.run_dir)
-torch.set_num_threads(1)
-torch.set_grad_enabled(False)
-env = make_env(config["env"], args.seed, time_feature=config["time_feature"], absorbing=config["absorbing"])
-agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low, env.action_space.high,
-            hidden=config["hidden"], critic_layer_norm=config.get("critic_layer_norm", False))
-checkpoint = run_folder_checkpoint(p, args.run_dir, {"agent": agent})
+config, env, agent, checkpoint = load_agent(p, args.run_dir, args.seed)
 
 episodes = [rollout(env, lambda obs: agent.act(obs, target=True)) for _ in range(args.episodes)]
 print(f"{config['env']} at step {checkpoint['loop']['global_step']}: the target actor's episodes, returns "

@@ -39,9 +39,9 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from credit import RewardModel, return_bonus  # noqa: E402
 from demos import default_demo_path  # noqa: E402
 from discriminator import Discriminator, shaped_reward  # noqa: E402
-from envs import make_env, rollout  # noqa: E402
-from plumbing import positive_int, run_folder_checkpoint, run_folder_config  # noqa: E402
-from td3 import TD3  # noqa: E402
+from envs import rollout  # noqa: E402
+from plumbing import positive_int  # noqa: E402
+from run_folder import load_agent  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
@@ -53,13 +53,7 @@ p.add_argument("--rest-when-upside-down", action="store_true",
                help="Ant-v5: the zero action from the first step upside down to the episode's end")
 p.add_argument("--zero-start", type=int, default=0, metavar="N", help="the zero action for each episode's first N steps")
 args = p.parse_args()
-config = run_folder_config(p, args.run_dir)
-torch.set_num_threads(1)
-torch.set_grad_enabled(False)
-env = make_env(config["env"], args.seed, time_feature=config["time_feature"], absorbing=config["absorbing"])
-agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low, env.action_space.high,
-            hidden=config["hidden"], critic_layer_norm=config.get("critic_layer_norm", False))
-checkpoint = run_folder_checkpoint(p, args.run_dir, {"agent": agent})
+config, env, agent, checkpoint = load_agent(p, args.run_dir, args.seed)
 policy = (lambda o: agent.act(o, target=True)) if args.target else agent.act
 
 unwrapped = env.unwrapped
