@@ -1467,7 +1467,10 @@ def test_actor_drift_probe_measures_the_actor_against_its_target_on_the_targets_
     assert drift and int(drift[1]) == sum(lengths) and 0 < float(drift[2]) < 2, lines[1]
     assert re.match(r"critic's min\(Q1, Q2\): at the actor's actions -?\d+\.\d, at the target's -?\d+\.\d, "
                     r"mean \|difference\| \d+\.\d\d$", lines[2]), lines[2]
-    assert [line.split(":")[0] for line in lines[3:]] == ["actor's Adam", "critic's Adam"]
+    assert re.match(r"the actor's episode: return -?\d+, \d+ steps, (terminated|truncated); min\(Q1, Q2\) at its "
+                    r"actions, step 1: -?\d+\.\d(, step \d+: -?\d+\.\d)*; the observation at its last step, first "
+                    r"entries -?\d\.\d{3}, -?\d\.\d{3}$", lines[3]), lines[3]
+    assert [line.split(":")[0] for line in lines[4:]] == ["actor's Adam", "critic's Adam"]
     assert missing.returncode == 2 and "has no config.json" in missing.stderr.strip().splitlines()[-1]
 
 

@@ -6,7 +6,11 @@ RUN_DIR is a sail.py run folder (config.json and checkpoint.pt). Plays --episode
 deterministic target actor and prints their returns and lengths; then, on their states, the mean
 |actor(s) - target(s)| per action entry (in units of half the action range), the share of action
 entries at the bounds (|tanh| > 0.99) of each, and the critic's min(Q1, Q2) at the actor's and at
-the target's actions: where the two agree, the critic is flat between the two actions. Last, the
+the target's actions: where the two agree, the critic is flat between the two actions. Then one
+episode of the actor itself: how it ended, the critic's min(Q1, Q2) at its actions at the first,
+middle, tenth-last and last step (whether the critic sees an early end coming), and the first two
+entries of the observation at its last step (Hopper-v5 and Walker2d-v5: the torso's height and
+angle). Last, the
 median over parameters of Adam's |m| / sqrt(v) for the actor and the critics: about 0.15 where a
 gradient is zero-mean noise of a steady size (the stationary std of m with beta1 = 0.9 is
 sqrt(0.1 / 1.9) of the gradient's; less where the size varies), near 1 where it keeps its sign.
@@ -46,6 +50,16 @@ print(f"on their {len(states)} states: mean |actor - target| per action entry "
 q_actor, q_target = (torch.min(*agent.critic(states, a)) for a in (actions, target_actions))
 print(f"critic's min(Q1, Q2): at the actor's actions {q_actor.mean():.1f}, at the target's {q_target.mean():.1f}, "
       f"mean |difference| {(q_actor - q_target).abs().mean():.2f}")
+# the actor's own episode: does the critic see its end coming?
+episode = rollout(env, agent.act)
+states = torch.as_tensor(episode["observations"], dtype=torch.float32)
+q = torch.min(*agent.critic(states, agent.actor(states)))
+marks = sorted({0, len(q) // 2, max(len(q) - 10, 0), len(q) - 1})
+print(f"the actor's episode: return {episode['episodic_return']:.0f}, {episode['length']} steps, "
+      f"{'terminated' if episode['terminated'] else 'truncated'}; min(Q1, Q2) at its actions, "
+      + ", ".join(f"step {i + 1}: {q[i]:.1f}" for i in marks)
+      + "; the observation at its last step, first entries "
+      + ", ".join(f"{x:.3f}" for x in episode["observations"][-1][:2]))
 for name in ("actor_optimizer", "critic_optimizer"):
     state = checkpoint["agent"][name]["state"].values()
     ratio = torch.cat([(s["exp_avg"].abs() / (s["exp_avg_sq"].sqrt() + 1e-8)).flatten() for s in state])
