@@ -10,11 +10,10 @@ the target's actions: where the two agree, the critic is flat between the two ac
 episode of the actor itself: how it ended, the critic's min(Q1, Q2) at its actions at the first,
 middle, tenth-last and last step (whether the critic sees an early end coming), and the first two
 entries of the observation at its last step (Hopper-v5 and Walker2d-v5: the torso's height and
-angle). Last, the
-median over parameters of Adam's |m| / sqrt(v) for the actor and the critics: about 0.15 where a
-gradient is zero-mean noise of a steady size (the stationary std of m with beta1 = 0.9 is
-sqrt(0.1 / 1.9) of the gradient's; less where the size varies), near 1 where it keeps its sign.
-Adam's step is lr times that ratio, whatever the gradient's size.
+angle). Last, the median over parameters of Adam's |m| / sqrt(v) for the actor and the critics:
+about 0.15 where a gradient is zero-mean noise of a steady size (the stationary std of m with
+beta1 = 0.9 is sqrt(0.1 / 1.9) of the gradient's; less where the size varies), near 1 where it
+keeps its sign. Adam's step is lr times that ratio, whatever the gradient's size.
 """
 
 import argparse
