@@ -365,6 +365,15 @@ def save_checkpoint(path, parts, **values):
     atomic_write(path, lambda f: torch.save(_to_safe(state), f))
 
 
+def torch_device(name):
+    """--device's torch device: auto is CUDA where there is one; cuda without one (a run made on a GPU,
+    resumed here, too) is a ConfigError."""
+    import torch
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("--device cuda: no CUDA device is available (--device cpu runs on the CPU)")
+    return torch.device("cuda" if name != "cpu" and torch.cuda.is_available() else "cpu")
+
+
 def load_checkpoint(path, parts=(), check=None):
     """Reads a file written by save_checkpoint with torch's weights-only unpickler (a file that
     would run code when unpickled is refused, as is any unreadable one: ConfigError), calls
@@ -465,7 +474,7 @@ def read_config(run_dir):
 # flags that have left sail.py, with the value today's code always runs: a saved run with another cannot resume
 RETIRED_FLAGS = {"update_every": 1}
 # flags added to sail.py after runs were saved, with the value the older code always ran: a run without one ran so
-ADDED_FLAGS = {"utd": 1, "actor_lr": None}
+ADDED_FLAGS = {"utd": 1, "actor_lr": None, "noise_color": 0.0}
 
 
 def resume_config(run_dir, args, given, changeable, script):

@@ -48,7 +48,7 @@ from credit import RewardModel, decomposition_unit, return_bonus, train_reward_m
 from demos import default_demo_path, load_teacher_buffer
 from discriminator import Discriminator, shaped_reward, train_discriminator
 from envs import EnvState, evaluate_policy, make_env
-from plumbing import non_negative_float, positive_int
+from noise import ColoredNoise
 from td3 import TD3, make_adam
 
 # Presets of --algo: defaults that flags given still override. The baselines keep their papers' plain learner.
@@ -80,7 +80,7 @@ SETUP = {"env", "algo", "method", "seed", "total_timesteps", "eval_freq", "eval_
 
 def parse_args(argv=None):
     p = plumbing.ArgumentParser(description=__doc__.split("\n\n")[0])
-    on_off, pos, nonneg = argparse.BooleanOptionalAction, positive_int, non_negative_float
+    on_off, pos, nonneg = argparse.BooleanOptionalAction, plumbing.positive_int, plumbing.non_negative_float
     g = p.add_argument_group("experiment")
     g.add_argument("--env", default="Walker2d-v5", help="gymnasium env id (MuJoCo v5 or any Box-action env)")
     g.add_argument("--algo", choices=sorted(PRESETS), default="sail", help="method: SAIL or a baseline preset")
@@ -111,6 +111,7 @@ def parse_args(argv=None):
     g.add_argument("--policy-delay", type=pos, default=2, help="critic updates per actor update")
     g.add_argument("--utd", type=pos, default=1, help="updates (reward model, TD3) per env step after the warm-up")
     g.add_argument("--exploration-noise", type=nonneg, default=0.1, help="std of the Gaussian action noise")
+    g.add_argument("--noise-color", type=nonneg, default=0.0, help="its spectrum over time, 1/f^beta: 0 white, 1 pink")
     g.add_argument("--buffer-size", type=pos, default=1_000_000, help="capacity of R_B in transitions")
     g.add_argument("--critic-layer-norm", action=on_off, default=True, help="LayerNorm in the critics (RLPD's)")
     g = p.add_argument_group("reward")
@@ -289,13 +290,12 @@ def start(args, parts, device):
 def train(args):
     if args.resume:
         args = plumbing.resume_config(args.resume, args, args.given, RESUMABLE, "sail.py")
-    if args.device == "cuda" and not torch.cuda.is_available():  # also a run made on a GPU, resumed here
-        raise plumbing.ConfigError("--device cuda: no CUDA device is available (--device cpu runs on the CPU)")
-    device = torch.device("cuda" if args.device != "cpu" and torch.cuda.is_available() else "cpu")
+    device = plumbing.torch_device(args.device)
     use_demos = args.reward in ("sail", "airl")  # D's reward needs R_E; the env's, IRCR's and RRD's do not
     parts = build(args, device, use_demos)
     agent, disc, teacher_buffer, self_buffer = (parts[k] for k in ("agent", "disc", "teacher_buffer", "self_buffer"))
     env, eval_env, rng = parts["env"].env, parts["eval_env"].env, parts["rng"].rng
+    colored = args.noise_color > 0 and ColoredNoise(args.noise_color, env, args.seed)
 
     # From here on Ctrl-C and SIGTERM only set stop.requested: the loop stops, checkpoints, and can resume
     with plumbing.StopRequest() as stop:
@@ -329,8 +329,8 @@ def train(args):
                 s.global_step += 1
 
                 # 1. act: uniformly random while R_B is initialised, then the actor plus Gaussian noise
-                action = (agent.explore(obs, args.exploration_noise, rng) if learning(s.global_step - 1)
-                          else env.action_space.sample())
+                action = (agent.explore(obs, args.exploration_noise, rng, colored and colored(s.global_step))
+                          if learning(s.global_step - 1) else env.action_space.sample())
                 if args.absorbing and obs[-1] == 1.0:  # the absorbing state: a zero action, as in the demos
                     action = np.zeros_like(action)
                 next_obs, reward, terminated, truncated, info = env.step(action)

@@ -17,6 +17,7 @@ import cpu_kernels
 from buffers import ReplayBuffer, TeacherBuffer, mixed_batch
 from demos import load_demos, save_demos
 from envs import absorbing_state, add_features, evaluate_policy, get_env_state, make_env, rollout, set_env_state
+from noise import ColoredNoise, colored_noise
 from plumbing import ADDED_FLAGS, ConfigError
 from td3 import TD3, make_adam
 
@@ -642,6 +643,45 @@ def test_td3_update_equals_the_straightforward_formulas(kernels):
                                            (agent.critic, critic_target, agent.critic_target)):
         for p, old, new in zip(online.parameters(), old_target.parameters(), new_target.parameters()):
             torch.testing.assert_close(new, 0.995 * old + 0.005 * p)
+
+
+def test_colored_noise_has_unit_variance_at_every_step_and_the_correlation_of_its_color():
+    """White (beta 0), pink (1) and red (2) noise: each entry's variance is 1 at the first, middle and last step
+    of a sequence (the std is --exploration-noise's whatever the color); neighbouring steps are uncorrelated for
+    white noise, correlated for pink and nearly equal for red."""
+    rng = np.random.default_rng(0)
+    for beta, low, high in ((0.0, -0.03, 0.03), (1.0, 0.6, 0.9), (2.0, 0.95, 1.0)):
+        for steps in (1000, 999):
+            x = np.stack([colored_noise(beta, steps, 2, rng) for _ in range(1000)])
+            assert x.shape == (1000, steps, 2)
+            for t in (0, steps // 2, steps - 1):
+                assert 0.9 < x[:, t].var() < 1.1, (beta, steps, t)
+            lag1 = (x[:, 1:] * x[:, :-1]).mean() / x.var()
+            assert low < lag1 < high, (beta, steps, lag1)
+
+
+def test_colored_noise_of_a_step_depends_on_the_seed_and_the_step_alone():
+    """What a resumed run relies on: the noise of env step k is the same for a fresh ColoredNoise and for one
+    that drew every step before k; another seed or block of the time limit draws other noise."""
+    env = make_env("Hopper-v5", 0)
+    walked, fresh = ColoredNoise(1.0, env, seed=3), ColoredNoise(1.0, env, seed=3)
+    rows = np.stack([walked(step) for step in range(2345)])
+    assert rows.shape == (2345, 3)
+    np.testing.assert_array_equal(fresh(2344), rows[2344])
+    np.testing.assert_array_equal(fresh(999), rows[999])
+    assert not np.allclose(ColoredNoise(1.0, env, seed=4)(2344), rows[2344])
+    assert not np.allclose(rows[:1000], rows[1000:2000])  # one sequence a block of 1000 steps
+
+
+def test_explore_adds_the_unit_noise_given_at_the_exploration_noise_std_else_draws_white_noise():
+    agent = TD3(12, 3, -np.ones(3), np.ones(3), hidden=(32, 32))
+    obs = np.zeros(12, dtype=np.float32)
+    unit = np.array([1.0, -2.0, 30.0])
+    np.testing.assert_allclose(agent.explore(obs, 0.1, None, unit), np.clip(agent.act(obs) + 0.1 * unit, -1, 1),
+                               rtol=1e-6)
+    a, b = np.random.default_rng(5), np.random.default_rng(5)
+    np.testing.assert_allclose(agent.explore(obs, 0.1, a), np.clip(agent.act(obs) + b.normal(0, 0.1, 3), -1, 1),
+                               rtol=1e-6)
 
 
 def test_actor_lr_is_the_size_of_the_actors_first_adam_step_and_leaves_the_critics_at_lr():
@@ -1474,6 +1514,27 @@ def test_actor_drift_probe_measures_the_actor_against_its_target_on_the_targets_
     assert missing.returncode == 2 and "has no config.json" in missing.stderr.strip().splitlines()[-1]
 
 
+def test_terminal_refit_fits_the_critic_to_r_b_s_terminal_transitions_when_they_fill_its_batches(tmp_path,
+                                                                                                 straight_run):
+    """results/terminal_refit.py: the actor's episode and R_B's terminal transitions, then two refits of the critic;
+    with every batch made of terminal transitions (--share 1) Q on them moves towards their reward, which is the
+    whole target there; a folder that is not a run is one error line."""
+    probe = os.path.join("results", "terminal_refit.py")
+    proc, missing = run_scripts((probe, str(straight_run), "--share", "1", "--updates", "40"), (probe, str(tmp_path)))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stdout.splitlines()
+    assert re.match(r"Hopper-v5 at step 1000: the actor's episode, return -?\d+, \d+ steps, (terminated|truncated); "
+                    r"R_B's terminal transitions: \d+ of its last 100000, [1-9]\d* in all$", lines[0]), lines[0]
+    assert [line.split(":")[0] for line in lines[1:]] == (["checkpoint"] + [f"share 0, {i} updates" for i in
+                                                                          (10, 20, 30, 40)]
+                                                          + [f"share 1, {i} updates" for i in (10, 20, 30, 40)])
+    gap = [abs(float(q) - float(r)) for q, r in
+           (re.search(r"R_B's terminals \(all\): Q (-?\d+\.\d), reward (-?\d+\.\d\d)$", lines[i]).groups()
+            for i in (1, -1))]
+    assert gap[1] < gap[0], lines
+    assert missing.returncode == 2 and "has no config.json" in missing.stderr.strip().splitlines()[-1]
+
+
 def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     probe = os.path.join("results", "early_ends.py")
     proc, missing, resting = run_scripts((probe, str(straight_run), "--episodes", "3"), (probe, str(tmp_path)),
@@ -1514,9 +1575,10 @@ def test_results_scripts_refuse_an_unreadable_run_folder_in_one_line(tmp_path):
         folder.mkdir()
         (folder / "config.json").write_text(config)
         (folder / "checkpoint.pt").write_text("not a checkpoint")
-    scripts = [os.path.join("results", f"{name}.py") for name in ("probe", "early_ends", "rrd_probe", "keep_replay")]
+    scripts = [os.path.join("results", f"{name}.py") for name in ("probe", "early_ends", "rrd_probe", "keep_replay",
+                                                                   "actor_drift", "terminal_refit")]
     procs = run_scripts(*[(script, str(folder)) for folder in (broken, bad_checkpoint) for script in scripts])
-    for proc, file in zip(procs, ["config.json"] * 4 + ["checkpoint.pt"] * 4):
+    for proc, file in zip(procs, ["config.json"] * len(scripts) + ["checkpoint.pt"] * len(scripts)):
         error = proc.stderr.strip().splitlines()[-1]
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
         assert re.match(r"\w+\.py: error: (cannot read )?\S+/" + re.escape(file) + r"\b", error), error
