@@ -20,6 +20,8 @@ def load_agent(parser, run_dir, seed):
     torch.set_grad_enabled(False)
     env = make_env(config["env"], seed, time_feature=config["time_feature"], absorbing=config["absorbing"])
     agent = TD3(env.observation_space.shape[0], env.action_space.shape[0], env.action_space.low, env.action_space.high,
-                hidden=config["hidden"], critic_layer_norm=config.get("critic_layer_norm", False))
+                hidden=config["hidden"], gamma=config["gamma"], tau=config["tau"], policy_noise=config["policy_noise"],
+                noise_clip=config["noise_clip"], policy_delay=config["policy_delay"],
+                critic_layer_norm=config.get("critic_layer_norm", False))
     checkpoint = run_folder_checkpoint(parser, run_dir, {"agent": agent})
     return config, env, agent, checkpoint

@@ -21,52 +21,50 @@ import sys
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-import plumbing  # noqa: E402
-import sail  # noqa: E402
-from buffers import mixed_batch  # noqa: E402
-from credit import decomposition_unit  # noqa: E402
-from discriminator import shaped_reward  # noqa: E402
-from envs import make_env, rollout  # noqa: E402
+from buffers import ReplayBuffer, TeacherBuffer, mixed_batch  # noqa: E402
+from credit import RewardModel, decomposition_unit  # noqa: E402
+from discriminator import Discriminator, shaped_reward  # noqa: E402
+from envs import rollout  # noqa: E402
+from plumbing import positive_int, unit_interval  # noqa: E402
+from run_folder import load_agent  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
-p.add_argument("--share", type=plumbing.unit_interval, default=0.1, help="share of a batch from terminal steps")
-p.add_argument("--updates", type=plumbing.positive_int, default=4000, help="TD3 steps of each refit")
+p.add_argument("--share", type=unit_interval, default=0.1, help="share of a batch from terminal transitions")
+p.add_argument("--updates", type=positive_int, default=4000, help="TD3 steps of each refit")
 p.add_argument("--seed", type=int, default=1000, help="seed of the actor's episode and of the batches")
 args = p.parse_args()
-plumbing.run_folder_config(p, args.run_dir)
-run = sail.parse_args(["--resume", args.run_dir, "--threads", "1"])
-try:
-    run = plumbing.resume_config(args.run_dir, run, {"threads"}, sail.RESUMABLE, "sail.py")
-except plumbing.ConfigError as e:
-    p.error(str(e))
-if run.return_decomposition <= 0 or run.reward not in ("sail", "airl"):
+config, env, agent, checkpoint = load_agent(p, args.run_dir, args.seed)
+if config["return_decomposition"] <= 0 or config["reward"] not in ("sail", "airl"):
     p.error(f"{args.run_dir}: a run with D's reward and a learned one (sail.py's defaults) is needed")
-parts = sail.build(run, torch.device("cpu"), use_demos=True)
-saved = plumbing.run_folder_checkpoint(p, args.run_dir, parts)
-agent, disc, reward_model, self_buffer = (parts[k] for k in ("agent", "disc", "reward_model", "self_buffer"))
-s = sail.LoopState(**saved["loop"])
-env = make_env(run.env, args.seed, time_feature=run.time_feature, absorbing=run.absorbing)
-unit = decomposition_unit(run.decomposition_unit, s.return_range, s.rate_range, env.max_episode_steps)
-with torch.no_grad():
-    episode = rollout(env, agent.act)
-    episode_obs = torch.as_tensor(episode["observations"], dtype=torch.float32)
-    episode_actions = agent.actor(episode_obs)
+obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+disc = Discriminator(obs_dim, act_dim, config["disc_hidden"], config.get("disc_action_norm", False))
+reward_model = RewardModel(obs_dim, act_dim, config["hidden"], config.get("action_cost", "none") != "none")
+self_buffer = ReplayBuffer(obs_dim, act_dim, config["buffer_size"])
+teacher_buffer = TeacherBuffer(config["teacher_capacity"], config.get("teacher_keep", "return"))
+for part, name in ((disc, "disc"), (reward_model, "reward_model"), (self_buffer, "self_buffer"),
+                   (teacher_buffer, "teacher_buffer")):
+    part.load_state_dict(checkpoint[name])
+loop = checkpoint["loop"]
+unit = decomposition_unit(config.get("decomposition_unit", "range"), loop["return_range"], loop["rate_range"],
+                          env.max_episode_steps)
+episode = rollout(env, agent.act)
+episode_obs = torch.as_tensor(episode["observations"], dtype=torch.float32)
+episode_actions = agent.actor(episode_obs)
 terminal = torch.nonzero(self_buffer.terminated[:self_buffer.size]).squeeze(-1)
 if len(terminal) == 0:
     p.error(f"{args.run_dir}: R_B holds no terminal transition")
 recent = terminal[terminal >= self_buffer.size - 100_000]
-print(f"{run.env} at step {s.global_step}: the actor's episode, return {episode['episodic_return']:.0f}, "
+print(f"{config['env']} at step {loop['global_step']}: the actor's episode, return {episode['episodic_return']:.0f}, "
       f"{episode['length']} steps, {'terminated' if episode['terminated'] else 'truncated'}; "
       f"R_B's terminal transitions: {len(recent)} of its last 100000, {len(terminal)} in all")
 
 
-def reward(obs, actions, next_obs):
-    return shaped_reward(disc, obs, actions, run.reward) + run.return_decomposition * reward_model(
+def reward(obs, actions, next_obs):  # as sail.py's update adds them, without a return bonus
+    return shaped_reward(disc, obs, actions, config["reward"]) + config["return_decomposition"] * reward_model(
         obs, actions, next_obs) / unit
 
 
-@torch.no_grad()
 def report(label):
     q = torch.min(*agent.critic(episode_obs, episode_actions))
     marks = sorted({0, len(q) // 2, max(len(q) - 10, 0), len(q) - 1})
@@ -80,6 +78,7 @@ def report(label):
 
 
 report("checkpoint")
+torch.set_grad_enabled(True)  # load_agent turned gradients off: the refits need them
 start = copy.deepcopy(agent.state_dict())
 for share in (0.0, args.share):
     agent.load_state_dict(copy.deepcopy(start))
@@ -87,8 +86,8 @@ for share in (0.0, args.share):
         group["lr"] = 0.0
     torch.manual_seed(args.seed)
     for i in range(1, args.updates + 1):
-        (obs, actions, next_obs, terminated), _, _ = mixed_batch(parts["teacher_buffer"], self_buffer,
-                                                                 run.batch_size, s.alpha)
+        (obs, actions, next_obs, terminated), _, _ = mixed_batch(teacher_buffer, self_buffer, config["batch_size"],
+                                                                 loop["alpha"])
         k = round(share * len(obs))
         if k:
             obs[-k:], actions[-k:], _, next_obs[-k:], terminated[-k:] = self_buffer.gather(
@@ -98,4 +97,5 @@ for share in (0.0, args.share):
         agent.update(obs, actions, rewards, next_obs, terminated)
         agent.actor_target.load_state_dict(start["actor_target"])  # Polyak would move it to the actor
         if i % max(args.updates // 4, 1) == 0 or i == args.updates:
-            report(f"share {share:g}, {i} updates")
+            with torch.no_grad():
+                report(f"share {share:g}, {i} updates")
