@@ -1,4 +1,4 @@
-"""Colored action noise: Gaussian exploration noise correlated in time over an episode.
+"""Colored action noise: Gaussian exploration noise correlated across env steps.
 
 TD3 explores with white noise, a fresh Gaussian draw at every step; on a 1000-step episode its
 pushes average out within a few steps. Colored noise has a power spectrum that falls as 1/f^beta

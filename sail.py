@@ -295,7 +295,7 @@ def train(args):
     parts = build(args, device, use_demos)
     agent, disc, teacher_buffer, self_buffer = (parts[k] for k in ("agent", "disc", "teacher_buffer", "self_buffer"))
     env, eval_env, rng = parts["env"].env, parts["eval_env"].env, parts["rng"].rng
-    colored = args.noise_color > 0 and ColoredNoise(args.noise_color, env, args.seed)
+    colored = ColoredNoise(args.noise_color, env, args.seed) if args.noise_color > 0 else None
 
     # From here on Ctrl-C and SIGTERM only set stop.requested: the loop stops, checkpoints, and can resume
     with plumbing.StopRequest() as stop:

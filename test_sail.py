@@ -18,8 +18,8 @@ from buffers import ReplayBuffer, TeacherBuffer, mixed_batch
 from demos import load_demos, save_demos
 from envs import absorbing_state, add_features, evaluate_policy, get_env_state, make_env, rollout, set_env_state
 from noise import ColoredNoise, colored_noise
-from plumbing import ADDED_FLAGS, ConfigError
-from td3 import TD3, make_adam
+from plumbing import ADDED_FLAGS, ConfigError, load_checkpoint
+from td3 import Actor, TD3, make_adam
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 # the tests that train networks in this process use small ones, which one thread runs as fast as
@@ -1512,6 +1512,19 @@ def test_actor_drift_probe_measures_the_actor_against_its_target_on_the_targets_
                     r"entries -?\d\.\d{3}, -?\d\.\d{3}$", lines[3]), lines[3]
     assert [line.split(":")[0] for line in lines[4:]] == ["actor's Adam", "critic's Adam"]
     assert missing.returncode == 2 and "has no config.json" in missing.stderr.strip().splitlines()[-1]
+
+
+def test_training_actions_carry_the_white_exploration_noise_by_default(straight_runs):
+    """The action R_B holds for the step after a checkpoint is the checkpoint's actor at the checkpoint's
+    observation plus Gaussian noise of std 0.1 (Hopper-v5's half range is 1): not the bare actor, no noise at all."""
+    stopped = load_checkpoint(straight_runs["stopped"] / "checkpoint.pt")  # at step 700: it acts at step 701
+    obs, actions = (load_checkpoint(straight_runs["straight"] / "checkpoint.pt")["self_buffer"]["data"][i][700]
+                    for i in (0, 1))
+    np.testing.assert_array_equal(obs, stopped["obs"])
+    actor = Actor(len(obs), len(actions), [32, 32], -np.ones(len(actions)), np.ones(len(actions)))
+    actor.load_state_dict(stopped["agent"]["actor"])
+    residual = (actions - actor(obs)).abs()
+    assert 1e-3 < residual.max() < 0.5, residual
 
 
 def test_terminal_refit_fits_the_critic_to_r_b_s_terminal_transitions_when_they_fill_its_batches(tmp_path,
