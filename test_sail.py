@@ -1527,6 +1527,24 @@ def test_training_actions_carry_the_white_exploration_noise_by_default(straight_
     assert 1e-3 < residual.max() < 0.5, residual
 
 
+def test_noise_color_1_explores_with_the_pink_noise_of_the_run_seed_and_step(tmp_path):
+    """With --noise-color 1 (and an actor that no update moves: --policy-delay past the run's end) each action R_B
+    holds once learning starts is the actor's plus 0.1 x the pink noise noise.py gives the run's seed at that
+    env step, clipped to the bounds."""
+    proc, = run_scripts(("sail.py", "--env", "Hopper-v5", "--noise-color", "1", "--policy-delay", "10000",
+                         "--learning-starts", "500", "--total-timesteps", "800", "--eval-freq", "800", "--seed", "4",
+                         "--output-dir", str(tmp_path), "--run-name", "pink", *TINY))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    saved = load_checkpoint(tmp_path / "pink" / "checkpoint.pt")
+    obs, actions = (saved["self_buffer"]["data"][i][600:800] for i in (0, 1))
+    actor = Actor(obs.shape[1], actions.shape[1], [32, 32], -np.ones(3), np.ones(3))
+    actor.load_state_dict(saved["agent"]["actor"])
+    pink = ColoredNoise(1.0, make_env("Hopper-v5", 0), seed=4)
+    expected = (actor(obs) + 0.1 * torch.as_tensor(np.stack([pink(step) for step in range(601, 801)]),
+                                                   dtype=torch.float32)).clamp(-1, 1)
+    torch.testing.assert_close(actions, expected)
+
+
 def test_terminal_refit_fits_the_critic_to_r_b_s_terminal_transitions_when_they_fill_its_batches(tmp_path,
                                                                                                  straight_run):
     """results/terminal_refit.py: the actor's episode and R_B's terminal transitions, then two refits of the critic;
