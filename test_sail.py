@@ -1514,35 +1514,33 @@ def test_actor_drift_probe_measures_the_actor_against_its_target_on_the_targets_
     assert missing.returncode == 2 and "has no config.json" in missing.stderr.strip().splitlines()[-1]
 
 
-def test_training_actions_carry_the_white_exploration_noise_by_default(straight_runs):
-    """The action R_B holds for the step after a checkpoint is the checkpoint's actor at the checkpoint's
-    observation plus Gaussian noise of std 0.1 (Hopper-v5's half range is 1): not the bare actor, no noise at all."""
-    stopped = load_checkpoint(straight_runs["stopped"] / "checkpoint.pt")  # at step 700: it acts at step 701
-    obs, actions = (load_checkpoint(straight_runs["straight"] / "checkpoint.pt")["self_buffer"]["data"][i][700]
-                    for i in (0, 1))
-    np.testing.assert_array_equal(obs, stopped["obs"])
-    actor = Actor(len(obs), len(actions), [32, 32], -np.ones(len(actions)), np.ones(len(actions)))
-    actor.load_state_dict(stopped["agent"]["actor"])
-    residual = (actions - actor(obs)).abs()
-    assert 1e-3 < residual.max() < 0.5, residual
-
-
-def test_noise_color_1_explores_with_the_pink_noise_of_the_run_seed_and_step(tmp_path):
-    """With --noise-color 1 (and an actor that no update moves: --policy-delay past the run's end) each action R_B
-    holds once learning starts is the actor's plus 0.1 x the pink noise noise.py gives the run's seed at that
-    env step, clipped to the bounds."""
-    proc, = run_scripts(("sail.py", "--env", "Hopper-v5", "--noise-color", "1", "--policy-delay", "10000",
-                         "--learning-starts", "500", "--total-timesteps", "800", "--eval-freq", "800", "--seed", "4",
-                         "--output-dir", str(tmp_path), "--run-name", "pink", *TINY))
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    saved = load_checkpoint(tmp_path / "pink" / "checkpoint.pt")
-    obs, actions = (saved["self_buffer"]["data"][i][600:800] for i in (0, 1))
-    actor = Actor(obs.shape[1], actions.shape[1], [32, 32], -np.ones(3), np.ones(3))
-    actor.load_state_dict(saved["agent"]["actor"])
+def test_exploration_noise_is_white_by_default_and_the_runs_pink_noise_with_noise_color_1(tmp_path):
+    """Two runs whose actor no update moves (--policy-delay past their end), so each action R_B holds once learning
+    starts is that actor's plus the noise, clipped to the bounds. By default: Gaussian noise of std 0.1 (Hopper-v5's
+    half range is 1), uncorrelated from step to step. With --noise-color 1: 0.1 x the pink noise noise.py gives
+    the run's seed at that env step, exactly."""
+    flags = ["--env", "Hopper-v5", "--policy-delay", "10000", "--learning-starts", "500", "--total-timesteps", "800",
+             "--eval-freq", "800", "--seed", "4", "--output-dir", str(tmp_path), *TINY]
+    procs = run_scripts(("sail.py", *flags, "--run-name", "white"),
+                        ("sail.py", *flags, "--noise-color", "1", "--run-name", "pink"))
+    for proc in procs:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    noise, policy = {}, {}
+    for name in ("white", "pink"):
+        saved = load_checkpoint(tmp_path / name / "checkpoint.pt")
+        obs, actions = (saved["self_buffer"]["data"][i][600:800] for i in (0, 1))
+        actor = Actor(obs.shape[1], actions.shape[1], [32, 32], -np.ones(3), np.ones(3))
+        actor.load_state_dict(saved["agent"]["actor"])
+        policy[name] = actor(obs).detach()
+        noise[name] = actions - policy[name]
     pink = ColoredNoise(1.0, make_env("Hopper-v5", 0), seed=4)
-    expected = (actor(obs) + 0.1 * torch.as_tensor(np.stack([pink(step) for step in range(601, 801)]),
-                                                   dtype=torch.float32)).clamp(-1, 1)
-    torch.testing.assert_close(actions, expected)
+    pink_steps = torch.as_tensor(np.stack([pink(step) for step in range(601, 801)]), dtype=torch.float32)
+    torch.testing.assert_close(noise["pink"], (policy["pink"] + 0.1 * pink_steps).clamp(-1, 1) - policy["pink"])
+    unclipped = ((policy["white"] + noise["white"]).abs() < 0.999).all(dim=1)
+    white = noise["white"][unclipped]
+    assert unclipped.sum() > 150 and 0.08 < white.std() < 0.12, (unclipped.sum(), white.std())
+    lag1 = (white[1:] * white[:-1]).mean() / white.var()  # neighbours in R_B, mostly neighbouring steps
+    assert abs(lag1) < 0.2, lag1
 
 
 def test_terminal_refit_fits_the_critic_to_r_b_s_terminal_transitions_when_they_fill_its_batches(tmp_path,
