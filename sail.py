@@ -48,7 +48,6 @@ from credit import RewardModel, decomposition_unit, return_bonus, train_reward_m
 from demos import default_demo_path, load_teacher_buffer
 from discriminator import Discriminator, shaped_reward, train_discriminator
 from envs import EnvState, evaluate_policy, make_env
-from noise import ColoredNoise
 from td3 import TD3, make_adam
 
 # Presets of --algo: defaults that flags given still override. The baselines keep their papers' plain learner.
@@ -111,7 +110,6 @@ def parse_args(argv=None):
     g.add_argument("--policy-delay", type=pos, default=2, help="critic updates per actor update")
     g.add_argument("--utd", type=pos, default=1, help="updates (reward model, TD3) per env step after the warm-up")
     g.add_argument("--exploration-noise", type=nonneg, default=0.1, help="std of the Gaussian action noise")
-    g.add_argument("--noise-color", type=nonneg, default=0.0, help="its spectrum over time, 1/f^beta: 0 white, 1 pink")
     g.add_argument("--buffer-size", type=pos, default=1_000_000, help="capacity of R_B in transitions")
     g.add_argument("--critic-layer-norm", action=on_off, default=True, help="LayerNorm in the critics (RLPD's)")
     g = p.add_argument_group("reward")
@@ -295,7 +293,6 @@ def train(args):
     parts = build(args, device, use_demos)
     agent, disc, teacher_buffer, self_buffer = (parts[k] for k in ("agent", "disc", "teacher_buffer", "self_buffer"))
     env, eval_env, rng = parts["env"].env, parts["eval_env"].env, parts["rng"].rng
-    colored = ColoredNoise(args.noise_color, env, args.seed) if args.noise_color > 0 else None
 
     # From here on Ctrl-C and SIGTERM only set stop.requested: the loop stops, checkpoints, and can resume
     with plumbing.StopRequest() as stop:
@@ -329,8 +326,8 @@ def train(args):
                 s.global_step += 1
 
                 # 1. act: uniformly random while R_B is initialised, then the actor plus Gaussian noise
-                action = (agent.explore(obs, args.exploration_noise, rng, colored and colored(s.global_step))
-                          if learning(s.global_step - 1) else env.action_space.sample())
+                action = (agent.explore(obs, args.exploration_noise, rng) if learning(s.global_step - 1)
+                          else env.action_space.sample())
                 if args.absorbing and obs[-1] == 1.0:  # the absorbing state: a zero action, as in the demos
                     action = np.zeros_like(action)
                 next_obs, reward, terminated, truncated, info = env.step(action)

@@ -112,12 +112,11 @@ class TD3:
         actor = self.actor_target if target else self.actor
         return actor(obs.unsqueeze(0))[0].cpu().numpy()
 
-    def explore(self, obs, exploration_noise, rng, unit_noise=None):
-        """The actor's action plus Gaussian noise (std: exploration_noise x half the action range),
-        clipped to the action bounds: white noise drawn from rng, or `unit_noise` scaled (noise.py)."""
+    def explore(self, obs, exploration_noise, rng):
+        """The actor's action plus Gaussian noise drawn from rng (std: exploration_noise x half the
+        action range), clipped to the action bounds."""
         low, high = self.action_bounds
-        std = exploration_noise * (high - low) / 2
-        noise = rng.normal(0.0, std) if unit_noise is None else unit_noise * std
+        noise = rng.normal(0.0, exploration_noise * (high - low) / 2)
         return np.clip(self.act(obs) + noise, low, high).astype(np.float32)
 
     def update(self, obs, actions, rewards, next_obs, terminated, next_action_mask=None, actor_penalty=None):

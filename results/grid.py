@@ -303,24 +303,6 @@ GRIDS = {
                  for line in grid([env], {"sail-pareto-actor-lr": sail(
                      "SAIL (--teacher-keep pareto --actor-lr 1e-4)", *OFF_POLICY, *DEFAULTS, "--actor-lr", "1e-4")},
                      [9, 10, 11])],
-    # Pink exploration noise (--noise-color 1, noise.py; Eberhard et al. 2023, "Pink Noise Is All You Need", ICLR):
-    # Gaussian action noise of the same std whose power falls as 1/f over an episode's steps, so its pushes last
-    # tens of steps instead of one. Ant-v5's seeds spend episodes upside down and HalfCheetah-v5 still climbs at
-    # 300k: both need more coherent exploration than one-step white noise gives. Measured before these runs, the
-    # other lead of the last grids is not this one: refitting the critic of actor-lr's Hopper-v5 seed 10 at 300k
-    # (results/terminal_refit.py, 4000 updates, the actor frozen) with a tenth of each batch from R_B's terminal
-    # transitions brings Q on R_B's recent ones from 51 to 5 (their reward 4.6) but leaves Q along the actor's own
-    # leaning episode as it is without them (219 and 217 at its tenth-last step): the states where that actor ends
-    # are not in R_B, so sampling R_B otherwise does not reach them. The rule, fixed
-    # before these runs (seeds 9-11, on top of the defaults with K = 64): the measure is the late mean (the
-    # evaluations from 200k to 300k steps); --noise-color 1 becomes the default if its 3-seed late mean is above
-    # the baseline's (the runs utd2 is judged against) on at least 3 of the 5 envs and lower by more than 5% on
-    # none. Hopper-v5 and HalfCheetah-v5 run first (two runs that fit a session side by side): if either's is more
-    # than 5% lower, the other envs are not run and --noise-color 1 is not adopted. The final is reported beside it
-    "pink-noise": [line for env in ["Hopper-v5", "HalfCheetah-v5", "Ant-v5", "Walker2d-v5", "Swimmer-v5"]
-                   for line in grid([env], {"sail-pareto-pink": sail(
-                       "SAIL (--teacher-keep pareto --noise-color 1)", *OFF_POLICY, *DEFAULTS, "--noise-color", "1")},
-                       [9, 10, 11])],
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
                        {"sail-4demos": sail("SAIL-paper", *PAPER, "--num-demos", "4"),
