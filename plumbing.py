@@ -472,9 +472,9 @@ def read_config(run_dir):
 
 
 # flags that have left sail.py, with the value today's code always runs: a saved run with another cannot resume
-RETIRED_FLAGS = {"update_every": 1, "noise_color": 0.0}
+RETIRED_FLAGS = {"update_every": 1, "noise_color": 0.0, "actor_lr": None}
 # flags added to sail.py after runs were saved, with the value the older code always ran: a run without one ran so
-ADDED_FLAGS = {"utd": 1, "actor_lr": None}
+ADDED_FLAGS = {"utd": 1}
 
 
 def resume_config(run_dir, args, given, changeable, script):

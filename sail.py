@@ -101,7 +101,6 @@ def parse_args(argv=None):
     g = p.add_argument_group("TD3 learner")
     g.add_argument("--hidden", type=pos, nargs="+", default=[256, 256], help="actor/critic hidden sizes")
     g.add_argument("--lr", type=plumbing.positive_float, default=3e-4, help="Adam learning rate of actor and critic")
-    g.add_argument("--actor-lr", type=plumbing.positive_float, help="the actor's Adam learning rate (default: --lr)")
     g.add_argument("--gamma", type=plumbing.unit_interval, default=0.99, help="discount")
     g.add_argument("--tau", type=plumbing.unit_interval, default=0.005, help="Polyak averaging rate of target networks")
     g.add_argument("--batch-size", type=pos, default=256, help="TD3 batch; also R_E's and R_B's part of D's")
@@ -247,7 +246,7 @@ def build(args, device, use_demos):
     teacher_buffer = (load_teacher_buffer(args.demos or default_demo_path(args.env), args.env, env, args.num_demos,
                                           args.teacher_capacity, args.time_feature, args.absorbing, args.teacher_keep)
                       if use_demos and not args.resume else TeacherBuffer(args.teacher_capacity, args.teacher_keep))
-    agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, args.hidden, args.lr, args.actor_lr,
+    agent = TD3(obs_dim, act_dim, env.action_space.low, env.action_space.high, args.hidden, args.lr,
                 gamma=args.gamma, tau=args.tau, policy_noise=args.policy_noise, noise_clip=args.noise_clip,
                 policy_delay=args.policy_delay, device=device, critic_layer_norm=args.critic_layer_norm)
     self_buffer = ReplayBuffer(obs_dim, act_dim, args.buffer_size)

@@ -79,7 +79,7 @@ def make_adam(params, lr):
 
 
 class TD3:
-    def __init__(self, obs_dim, act_dim, action_low, action_high, hidden=(256, 256), lr=3e-4, actor_lr=None,
+    def __init__(self, obs_dim, act_dim, action_low, action_high, hidden=(256, 256), lr=3e-4,
                  gamma=0.99, tau=0.005, policy_noise=0.2, noise_clip=0.5, policy_delay=2,
                  device="cpu", critic_layer_norm=False):
         self.gamma, self.tau, self.policy_delay = gamma, tau, policy_delay
@@ -88,7 +88,7 @@ class TD3:
         self.critic = TwinCritic(obs_dim, act_dim, hidden, critic_layer_norm).to(self.device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.actor_optimizer = make_adam(self.actor.parameters(), actor_lr or lr)  # default: the critics' lr
+        self.actor_optimizer = make_adam(self.actor.parameters(), lr)
         self.critic_optimizer = make_adam(self.critic.parameters(), lr)
         # target policy smoothing noise, in units of the action range
         self.policy_noise = policy_noise * self.actor.action_scale

@@ -268,7 +268,7 @@ GRIDS = {
     # only +5.0% and +0.4% on seeds 9 and 10. What the critic is given is D's reward (about 0.7 per step) plus the
     # learned reward over its unit (HalfCheetah-v5's returns per step span about 7), so a step 1 m/s faster is
     # worth about 0.1 more to it, of the size of D's own spread across speeds (0.70-0.76 at 2.6-10.1 m/s on
-    # actor-lr's seed 9 at 300k). The question: does a learned reward that outweighs D's make the agent run
+    # archive/actor-lr's seed 9 at 300k). The question: does a learned reward that outweighs D's make the agent run
     # faster than R_E, or, where episodes end early (Walker2d-v5), does it lose what D's imitation holds (the
     # range unit, which scaled the learned reward up in the same way, lost Walker2d-v5)? Seed 9 only; it
     # is compared with decomposition-whole's seed 9 (weight 1) and the defaults' seed 9. A decision would need
@@ -299,23 +299,6 @@ GRIDS = {
     "utd2": [line for env in ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Swimmer-v5"] for line in grid(
         [env], {"sail-pareto-utd2": sail("SAIL (--teacher-keep pareto --utd 2)", *OFF_POLICY, *DEFAULTS,
                                          "--utd", "2")}, [9, 10, 11])],
-    # A slower actor (--actor-lr 1e-4; the critics, D and the reward model keep 3e-4): DDPG's ratio of the actor's
-    # learning rate to the critic's (1e-4 and 1e-3, Lillicrap et al. 2016). On Hopper-v5 every run on the decision
-    # seeds has a fall among its last 5 evaluations (results/README.md), and utd2's seed 10 at 300k falls after
-    # ~40 steps in all 40 probe episodes while its Polyak-averaged target actor runs all 40 to the time limit. There
-    # the critic is nearly flat in the action: on the target actor's states min(Q1, Q2) is 240.2 at the actor's
-    # actions and at the target's, 0.125 apart per action entry. Adam's step is about lr whatever the gradient's
-    # size, so on a flat critic the actor wanders by about lr a step; a smaller lr keeps it nearer its average.
-    # The rule, fixed before these runs (seeds 9-11, on top of the defaults with K = 64): the measure is the late
-    # mean, the mean of a run's evaluations from 200k to 300k steps (11 of 5 episodes each; the final, the last 5,
-    # turns on single falls of the actor). --actor-lr 1e-4 becomes the default if its 3-seed late mean is above the
-    # baseline's (the runs utd2 is judged against) on at least 3 of the 5 envs and lower by more than 5% on none.
-    # Hopper-v5 and Walker2d-v5 run first (baseline late means 2560 and 3061): if either's is more than 5% lower,
-    # the other envs are not run and --actor-lr 1e-4 is not adopted. The final is reported beside it
-    "actor-lr": [line for env in ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Ant-v5", "Swimmer-v5"]
-                 for line in grid([env], {"sail-pareto-actor-lr": sail(
-                     "SAIL (--teacher-keep pareto --actor-lr 1e-4)", *OFF_POLICY, *DEFAULTS, "--actor-lr", "1e-4")},
-                     [9, 10, 11])],
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
                        {"sail-4demos": sail("SAIL-paper", *PAPER, "--num-demos", "4"),
