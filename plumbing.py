@@ -11,6 +11,7 @@ import csv
 import fcntl
 import io
 import json
+import math
 import os
 import platform
 import shlex
@@ -19,16 +20,15 @@ import subprocess
 import sys
 import time
 
-import numpy as np
-
 # progress.csv's columns, one row per evaluation, the same for every script so that plot.py reads them all
 PROGRESS_COLUMNS = ["global_step", "eval_return", "eval_return_std", "eval_length", "train_episodic_return",
                     "teacher_threshold", "teacher_episodes", "promotions", "alpha", "disc_loss", "disc_teacher",
                     "disc_self", "reward_mean", "decomposition_loss", "decomposition_action_cost", "critic_loss",
                     "actor_loss", "q", "updates", "steps_per_second", "time"]
 
-# torch is imported inside the checkpoint functions that use it, so that a script which only needs
-# the flags and files here (results/grid.py) starts without loading it (~2 s)
+# torch and numpy are imported inside the functions that use them: a script which only needs the flags
+# and files here (results/grid.py) starts without loading torch (~2 s), and a script's quiet Ctrl-C handler
+# (quiet_interrupt_while_importing) is in place before numpy loads (~0.1 s)
 
 
 class ConfigError(Exception):
@@ -259,13 +259,18 @@ def run_name(env_id, method, seed):
     return f"{env_id}__{method}__{seed}__{time.strftime('%Y%m%d-%H%M%S')}"
 
 
+def rounded(row):
+    """A CSV row with its floats, numpy's too, rounded to 4 decimals."""
+    import numpy as np
+    return {k: round(float(v), 4) if isinstance(v, (float, np.floating)) else v for k, v in row.items()}
+
+
 def write_csv(path, columns, rows):
     """Writes all rows (dicts) to `path` atomically; floats rounded to 4 decimals."""
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=columns)
     writer.writeheader()
-    writer.writerows([{k: round(float(v), 4) if isinstance(v, (float, np.floating)) else v
-                       for k, v in row.items()} for row in rows])
+    writer.writerows([rounded(row) for row in rows])
     atomic_write(path, lambda f: f.write(text.getvalue().encode()))
 
 
@@ -284,13 +289,13 @@ class ProgressLog:
             self.writer = SummaryWriter(run_dir)
 
     def append(self, row):
-        row = {k: round(float(v), 4) if isinstance(v, (float, np.floating)) else v for k, v in row.items()}
+        row = rounded(row)
         self.rows.append(row)
         write_csv(self.path, self.columns, self.rows)
         if self.writer is not None:
             step = row["global_step"] or row["updates"]  # BC takes no env steps: its gradient steps
             for name, value in row.items():
-                if name != "global_step" and isinstance(value, (int, float)) and np.isfinite(value):
+                if name != "global_step" and isinstance(value, (int, float)) and math.isfinite(value):
                     self.writer.add_scalar(f"progress/{name}", value, step)
             self.writer.flush()
 
@@ -335,6 +340,7 @@ def check_tensorboard(parser, args):
 
 def _to_safe(x):
     """numpy arrays and scalars -> tensors and Python numbers (marked, to be turned back)."""
+    import numpy as np
     import torch
     if isinstance(x, np.ndarray):
         return {"__ndarray__": torch.from_numpy(np.ascontiguousarray(x)).clone()}
@@ -410,7 +416,7 @@ def save_model(run_dir, agent, disc, args):
 
 def check_finite(losses, where, run_dir):
     """ConfigError if a loss is NaN or infinite: the run stops before a diverged policy acts again."""
-    bad = {k: float(v) for k, v in losses.items() if not np.isfinite(float(v))}
+    bad = {k: float(v) for k, v in losses.items() if not math.isfinite(float(v))}
     if bad:
         kept = (f"the last good checkpoint in {run_dir} is kept" if os.path.isfile(os.path.join(run_dir, "checkpoint.pt"))
                 else "it had written no checkpoint yet")

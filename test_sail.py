@@ -1839,6 +1839,10 @@ def test_ctrl_c_or_sigterm_stops_cleanly_with_a_checkpoint_that_resumes(tmp_path
 def test_ctrl_c_while_the_libraries_load_is_one_line_and_starts_nothing(tmp_path, poor_hopper_demos):
     import signal
     import time
+    # the scripts install their quiet handler right after `import plumbing`, which must load no numpy or torch
+    check = "import sys, plumbing; print(sorted({'numpy', 'torch'} & set(sys.modules)))"
+    loaded = subprocess.run([sys.executable, "-c", check], cwd=HERE, capture_output=True, text=True)
+    assert loaded.stdout.strip() == "[]", loaded.stdout + loaded.stderr
     proc = subprocess.Popen([sys.executable, "sail.py", "--env", "Hopper-v5", "--demos", poor_hopper_demos,
                              "--output-dir", str(tmp_path / "runs")], cwd=HERE, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
