@@ -36,12 +36,11 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from credit import RewardModel, return_bonus  # noqa: E402
+from credit import return_bonus  # noqa: E402
 from demos import default_demo_path  # noqa: E402
-from discriminator import Discriminator, shaped_reward  # noqa: E402
 from envs import rollout  # noqa: E402
 from plumbing import positive_int  # noqa: E402
-from run_folder import load_agent  # noqa: E402
+from run_folder import critic_reward, load_agent, load_parts  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
@@ -181,25 +180,13 @@ first_by_start = np.full(n, n)
 np.minimum.at(first_by_start, episode_start[flipped_now & finished], index[flipped_now & finished])
 first_flip = np.where(first_by_start[episode_start] < n, first_by_start[episode_start], -1)
 episode_returns_per_step = self_buffer["episode_returns"]
-parts = {}
-with torch.no_grad():
-    if config["reward"] in ("sail", "airl"):
-        disc = Discriminator(obs.shape[1], actions.shape[1], config["disc_hidden"], config.get("disc_action_norm", False))
-        disc.load_state_dict(checkpoint["disc"])
-        parts["D's reward"] = shaped_reward(disc, obs, actions, config["reward"])
-    if config["return_bonus"] > 0:
-        parts["return bonus"] = config["return_bonus"] * return_bonus(episode_returns_per_step,
-                                                                      checkpoint["loop"]["return_range"])
-    if checkpoint.get("reward_model") is not None:
-        # the learned action cost: --action-cost reward or reward-and-actor (before it was one flag: its older name)
-        learn_action_cost = (config.get("action_cost", "none") != "none"
-                             or config.get("decomposition_action_cost", False))
-        reward_model = RewardModel(obs.shape[1], actions.shape[1], config["hidden"], learn_action_cost)
-        reward_model.load_state_dict(checkpoint["reward_model"])
-        low, high = checkpoint["loop"]["rate_range"] if config["decomposition_unit"] == "rate" else (
-            np.array(checkpoint["loop"]["return_range"]) / env.max_episode_steps)
-        parts["learned reward"] = config["return_decomposition"] * reward_model(
-            obs, actions, self_buffer["data"][3]) / max(high - low, 1e-8)
+d_reward, learned, _ = critic_reward(config, checkpoint, load_parts(config, checkpoint, obs.shape[1], actions.shape[1],
+                                                                    ("disc", "reward_model")),
+                                     obs, actions, self_buffer["data"][3], env.max_episode_steps)
+bonus = (config["return_bonus"] * return_bonus(episode_returns_per_step, checkpoint["loop"]["return_range"])
+         if config["return_bonus"] > 0 else None)
+parts = {name: value for name, value in (("D's reward", d_reward), ("return bonus", bonus), ("learned reward", learned))
+         if value is not None}
 to_flip = np.where(first_flip >= 0, first_flip - index, np.iinfo(np.int64).max)
 print(f"the critic's reward and min(Q1, Q2) at the actor's actions (R_B's last {min(n, 100_000)} transitions), "
       "by steps to the first step upside down:")

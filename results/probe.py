@@ -25,44 +25,33 @@ import argparse
 import os
 import sys
 
-import gymnasium as gym
 import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from buffers import ReplayBuffer  # noqa: E402
-from credit import RewardModel, decomposition_unit  # noqa: E402
 from demos import default_demo_path, load_demos  # noqa: E402
-from discriminator import Discriminator, shaped_reward  # noqa: E402
 from envs import absorbing_state, add_features  # noqa: E402
-from plumbing import run_folder_checkpoint, run_folder_config  # noqa: E402
-from td3 import Actor, TwinCritic  # noqa: E402
+from run_folder import critic_reward, load_agent, load_parts  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
 p.add_argument("--velocity-index", type=int, default=8, help="the observation scaled in the D probe")
 p.add_argument("--height-index", type=int, default=0, help="the observation whose bins the last probe reports")
 args = p.parse_args()
-config = run_folder_config(p, args.run_dir)
-state = run_folder_checkpoint(p, args.run_dir)
+config, env, agent, state = load_agent(p, args.run_dir, seed=0)
+actor, critic = agent.actor, agent.critic
+obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+parts = load_parts(config, state, obs_dim, act_dim, ("disc", "reward_model", "self_buffer"))
+disc, self_buffer = parts["disc"], parts["self_buffer"]  # R_B is a ring: once full, its newest steps are not its last rows
 self_obs = state["self_buffer"]["data"][0]
-obs_dim, act_dim = self_obs.shape[1], state["self_buffer"]["data"][1].shape[1]
-self_buffer = ReplayBuffer(obs_dim, act_dim, config["buffer_size"])
-self_buffer.load_state_dict(state["self_buffer"])  # a ring: once full, its newest steps are not its last rows
-disc = Discriminator(obs_dim, act_dim, config["disc_hidden"], config.get("disc_action_norm", False))
-disc.load_state_dict(state["disc"])
-critic = TwinCritic(obs_dim, act_dim, config["hidden"], config.get("critic_layer_norm", False))
-critic.load_state_dict(state["agent"]["critic"])
-actor = Actor(obs_dim, act_dim, config["hidden"], -np.ones(act_dim), np.ones(act_dim))
-actor.load_state_dict(state["agent"]["actor"])  # its buffers hold the env's action bounds
 sample = self_obs[torch.randperm(len(self_obs), generator=torch.Generator().manual_seed(0))[:4096]]
-policy_actions = actor(sample).detach().requires_grad_(True)
-q = critic.q1(sample, policy_actions)
-slope, = torch.autograd.grad(q.sum(), policy_actions)
+with torch.enable_grad():
+    policy_actions = actor(sample).detach().requires_grad_(True)
+    q = critic.q1(sample, policy_actions)
+    slope, = torch.autograd.grad(q.sum(), policy_actions)
 slope = (slope * actor.action_scale).abs().mean().item()  # per unit of half the action range, as the penalties
 print(f"Q1 at the actor's actions ({len(sample)} states of R_B): mean |Q| {q.abs().mean().item():.1f}, mean slope "
       f"per action dimension {slope:.3f}, their ratio {slope / q.abs().mean().item():.4f}")
-torch.set_grad_enabled(False)
 
 if config["absorbing"]:
     absorbing = torch.as_tensor(absorbing_state(obs_dim - 1))[None]
@@ -77,7 +66,7 @@ demo_path = config["demos"] or default_demo_path(config["env"])
 raw_obs_dim = obs_dim - int(config["time_feature"]) - int(config["absorbing"])
 episodes = load_demos(demo_path, config["env"], raw_obs_dim, act_dim, config["num_demos"])
 obs, actions = [], []
-max_steps = gym.spec(config["env"]).max_episode_steps or 1000  # the time feature's denominator, as in envs.make_env
+max_steps = env.max_episode_steps  # the time feature's denominator
 for episode in episodes:
     o, a, *_ = add_features(episode, max_steps, config["time_feature"], config["absorbing"])
     keep = o[:, -1] != 1.0 if config["absorbing"] else slice(None)  # not the absorbing state
@@ -96,18 +85,8 @@ for scale in (0.0, 0.5, 1.0, 1.5, 2.0):
 
 # Where in the state the rewards go: D's reward and the learned one, by bins of one observation entry
 obs, actions, next_obs, _ = self_buffer.latest(min(100_000, self_buffer.size))
-d_reward = shaped_reward(disc, obs, actions, config["reward"]) if config["reward"] in ("sail", "airl") else None
-learned = None
-if state.get("reward_model") is not None:
-    # the learned action cost: --action-cost reward or reward-and-actor (before it was one flag: its older name)
-    learn_action_cost = config.get("action_cost", "none") != "none" or config.get("decomposition_action_cost", False)
-    reward_model = RewardModel(obs_dim, act_dim, config["hidden"], learn_action_cost)
-    reward_model.load_state_dict(state["reward_model"])
-    learned = reward_model(obs, actions, next_obs)
-    unit = decomposition_unit(config.get("decomposition_unit", "range"), state["loop"]["return_range"],
-                              state["loop"]["rate_range"], gym.spec(config["env"]).max_episode_steps or 1000)
-    # the reward the critic is given, as sail.py's update makes it (D's, or none, plus the learned one in its unit)
-    critic_reward = (d_reward if d_reward is not None else 0.0) + config["return_decomposition"] * learned / unit
+d_reward, _, reward_given = critic_reward(config, state, parts, obs, actions, next_obs, env.max_episode_steps)
+learned = parts["reward_model"](obs, actions, next_obs) if "reward_model" in parts else None  # in returns per step
 q_taken = torch.min(*critic(obs, actions))  # what the critic values the steps that were taken at
 entry = obs[:, args.height_index].contiguous()
 edges = torch.linspace(entry.min().item(), entry.max().item(), 9)
@@ -121,7 +100,7 @@ for i, (low, high) in enumerate(zip(edges[:-1], edges[1:])):
     print(f"  {low:.2f} to {high:.2f}: {int(inside.sum())} transitions, "
           + (f"D's reward {d_reward[inside].mean().item():.3f}, " if d_reward is not None else "")
           + (f"learned reward {learned[inside].mean().item():.3f}, critic's reward "
-             f"{critic_reward[inside].mean().item():.3f}, " if learned is not None else "")
+             f"{reward_given[inside].mean().item():.3f}, " if learned is not None else "")
           + f"Q {q_taken[inside].mean().item():.1f}, squared action norm {actions[inside].pow(2).sum(1).mean().item():.2f}")
 
 # What R_E holds now: the demos and the promoted episodes that are left, the lowest return first

@@ -21,12 +21,10 @@ import sys
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from buffers import ReplayBuffer, TeacherBuffer, mixed_batch  # noqa: E402
-from credit import RewardModel, decomposition_unit  # noqa: E402
-from discriminator import Discriminator, shaped_reward  # noqa: E402
+from buffers import mixed_batch  # noqa: E402
 from envs import rollout  # noqa: E402
 from plumbing import positive_int, unit_interval  # noqa: E402
-from run_folder import load_agent  # noqa: E402
+from run_folder import critic_reward, load_agent, load_parts  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
@@ -37,17 +35,9 @@ args = p.parse_args()
 config, env, agent, checkpoint = load_agent(p, args.run_dir, args.seed)
 if config["return_decomposition"] <= 0 or config["reward"] not in ("sail", "airl"):
     p.error(f"{args.run_dir}: a run with D's reward and a learned one (sail.py's defaults) is needed")
-obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
-disc = Discriminator(obs_dim, act_dim, config["disc_hidden"], config.get("disc_action_norm", False))
-reward_model = RewardModel(obs_dim, act_dim, config["hidden"], config.get("action_cost", "none") != "none")
-self_buffer = ReplayBuffer(obs_dim, act_dim, config["buffer_size"])
-teacher_buffer = TeacherBuffer(config["teacher_capacity"], config.get("teacher_keep", "return"))
-for part, name in ((disc, "disc"), (reward_model, "reward_model"), (self_buffer, "self_buffer"),
-                   (teacher_buffer, "teacher_buffer")):
-    part.load_state_dict(checkpoint[name])
+parts = load_parts(config, checkpoint, env.observation_space.shape[0], env.action_space.shape[0])
+self_buffer, teacher_buffer = parts["self_buffer"], parts["teacher_buffer"]
 loop = checkpoint["loop"]
-unit = decomposition_unit(config.get("decomposition_unit", "range"), loop["return_range"], loop["rate_range"],
-                          env.max_episode_steps)
 episode = rollout(env, agent.act)
 episode_obs = torch.as_tensor(episode["observations"], dtype=torch.float32)
 episode_actions = agent.actor(episode_obs)
@@ -61,8 +51,7 @@ print(f"{config['env']} at step {loop['global_step']}: the actor's episode, retu
 
 
 def reward(obs, actions, next_obs):  # as sail.py's update adds them, without a return bonus
-    return shaped_reward(disc, obs, actions, config["reward"]) + config["return_decomposition"] * reward_model(
-        obs, actions, next_obs) / unit
+    return critic_reward(config, checkpoint, parts, obs, actions, next_obs, env.max_episode_steps)[2]
 
 
 def report(label):
