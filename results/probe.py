@@ -42,7 +42,7 @@ config, env, agent, state = load_agent(p, args.run_dir, seed=0)
 actor, critic = agent.actor, agent.critic
 obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
 parts = load_parts(config, state, obs_dim, act_dim, ("disc", "reward_model", "self_buffer"))
-disc, self_buffer = parts["disc"], parts["self_buffer"]  # R_B is a ring: once full, its newest steps are not its last rows
+disc, self_buffer = parts["disc"], parts["self_buffer"]  # R_B, a ring: once full, its newest steps are not its last
 self_obs = state["self_buffer"]["data"][0]
 sample = self_obs[torch.randperm(len(self_obs), generator=torch.Generator().manual_seed(0))[:4096]]
 with torch.enable_grad():

@@ -51,7 +51,8 @@ def load_parts(config, checkpoint, obs_dim, act_dim, names=("disc", "reward_mode
 
 def critic_reward(config, checkpoint, parts, obs, actions, next_obs, episode_steps):
     """The reward sail.py's update gives the critic, without the return bonus: D's reward (None for a run
-    without D's: TD3-sparse, IRCR, RRD) and the learned one, weighted and over its unit (None for a run without it), and their sum."""
+    without D's: TD3-sparse, IRCR, RRD), the learned one weighted and over its unit (None for a run without
+    one), and their sum."""
     d = shaped_reward(parts["disc"], obs, actions, config["reward"]) if config["reward"] in ("sail", "airl") else None
     learned = None
     if "reward_model" in parts:
