@@ -280,8 +280,8 @@ GRIDS = {
     # on Hopper-v5, weight 1's (decomposition-whole/)
     "decomposition-weight": grid(["HalfCheetah-v5", "Walker2d-v5", "Hopper-v5", "Ant-v5"], {
         "sail-pareto-k1000-w3": sail(
-        "SAIL (--teacher-keep pareto --decomposition-subset 1000 --return-decomposition 3)", *OFF_POLICY, *DEFAULTS,
-        "--decomposition-subset", "1000", "--return-decomposition", "3")}, [9]),
+            "SAIL (--teacher-keep pareto --decomposition-subset 1000 --return-decomposition 3)", *OFF_POLICY, *DEFAULTS,
+            "--decomposition-subset", "1000", "--return-decomposition", "3")}, [9]),
     # K = 256 with the weak teachers, beside `weak-pareto` (K = 64): on Walker2d-v5 seed 9 `pareto` stood from 60k to
     # 150k while D's reward fell with velocity; K = 256 kept the learned reward's slope against the dense one on
     # the shipped teacher (0.85 at 160k, decomposition-subset/). A diagnosis of the standing trap, fixed before its
