@@ -52,8 +52,8 @@ from td3 import TD3, make_adam
 
 # Presets of --algo: defaults that flags given still override. The baselines keep their papers' plain learner.
 PLAIN_LEARNER = {"critic_layer_norm": False, "disc_negatives": "all", "return_decomposition": 0.0,
-                 "decomposition_unit": "range", "disc_action_norm": False, "action_cost": "none",
-                 "teacher_keep": "return"}
+                 "decomposition_unit": "range", "decomposition_subset": 64, "disc_action_norm": False,
+                 "action_cost": "none", "teacher_keep": "return"}  # K = 64: RRD's code's rrd_sample_size for MuJoCo
 PRESETS = {
     "sail": {},
     "sail-paper": PLAIN_LEARNER | {"return_bonus": 0.0},  # Algorithm 1 as published
@@ -120,7 +120,7 @@ def parse_args(argv=None):
                    help="learned reward's unit: range of returns per step, or over the time limit (RRD's)")
     g.add_argument("--action-cost", choices=["none", "reward", "reward-and-actor"], default="reward-and-actor",
                    help="a learned c ||a||^2 in the learned reward, and also in the actor's loss")
-    g.add_argument("--decomposition-subset", type=pos, default=64, help="steps per episode per minibatch (RRD's K; "
+    g.add_argument("--decomposition-subset", type=pos, default=256, help="steps per episode per minibatch (RRD's K; "
                    "at least the episode length: whole episodes, one a minibatch)")
     g.add_argument("--time-feature", action=on_off, default=True, help="append 1 - t/T to the observation")
     g.add_argument("--absorbing", action=on_off, default=False, help="DAC's absorbing states")

@@ -1362,9 +1362,10 @@ def test_decomposition_probe_reports_the_learned_reward_and_its_action_cost(stra
     # what the dense reward would pay in RRD's loss at the refit's K and the run's: less for more steps, and
     # nothing where the subset is the whole episode
     terms = [re.search(r": (\d+) steps, .*, per-step correlation \S+, slope -?[0-9.]+; the dense reward's variance "
-                       r"term K = 8 (\S+), K = 64 (\S+)$", line) for line in lines[:2]]
-    assert all(terms) and all(float(t[2]) > float(t[3]) >= 0 for t in terms)
-    assert all((float(t[3]) == 0) == (int(t[1]) <= 64) for t in terms)
+                       r"term K = 8 (\S+), K = (\d+) (\S+)$", line) for line in lines[:2]]
+    assert all(terms) and all(int(t[3]) == sail.parse_args([]).decomposition_subset for t in terms)  # the run's K
+    assert all(float(t[2]) > float(t[4]) >= 0 for t in terms)
+    assert all((float(t[4]) == 0) == (int(t[1]) <= int(t[3])) for t in terms)
     assert without.returncode == 2 and "without --return-decomposition" in without.stderr
     assert bad.returncode == 2 and "--refit sizes must be" in bad.stderr
 
@@ -2040,14 +2041,16 @@ def test_sail_paper_is_the_defaults_with_each_addition_turned_off_and_the_baseli
     additions_off = ["--return-bonus", "0", "--return-decomposition", "0", "--no-critic-layer-norm",
                      "--disc-negatives", "all", "--no-disc-action-norm", "--teacher-keep", "return"]
     paper, off = vars(sail.parse_args(["--algo", "sail-paper"])), vars(sail.parse_args(additions_off))
-    # what still differs is the preset and its name, and a flag that means nothing with its addition off
-    assert {k for k in paper if k != "given" and paper[k] != off[k]} == {"algo", "method", "decomposition_unit"}
+    # what still differs is the preset and its name, and flags that mean nothing with their addition off
+    assert {k for k in paper if k != "given" and paper[k] != off[k]} == {"algo", "method", "decomposition_unit",
+                                                                        "decomposition_subset"}
     defaults = sail.parse_args([])
     assert (defaults.return_bonus, defaults.return_decomposition) == (1.0, 1.0)
     for algo in ("dac", "td3", "ircr", "rrd"):
         args = sail.parse_args(["--algo", algo])
         assert not (args.critic_layer_norm or args.disc_action_norm) and args.disc_negatives == "all", algo
         assert args.return_decomposition == (1.0 if algo == "rrd" else 0.0) and args.decomposition_unit == "range"
+        assert args.decomposition_subset == 64, algo  # RRD's own K
         assert args.action_cost == "none" and args.alpha == 0.0, algo
 
 
@@ -2370,6 +2373,14 @@ def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
                 checked += 1
     assert found == committed, sorted(committed - found)
     assert checked > 150
+
+
+def test_grid_defaults_are_sail_py_defaults():
+    """grid.py's DEFAULTS, which new grids build on, is what sail.py runs with no learner flag given."""
+    defaults = vars(sail.parse_args(load_grid_module().DEFAULTS))
+    plain = vars(sail.parse_args([]))
+    keys = [key for key in plain if key not in sail.SETUP and key != "given"]
+    assert {key: defaults[key] for key in keys} == {key: plain[key] for key in keys}
 
 
 def test_the_cpu_a_results_paragraph_names_is_the_one_its_runs_recorded():

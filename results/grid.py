@@ -46,17 +46,21 @@ BONUS = [*PAPER, "--return-bonus", "1"]
 # the layer-normed critics with the on-policy D from the first promotion (several grids build on them)
 LN_ONPOLICY_FLAGS = ["--critic-layer-norm", "--disc-negatives", "recent-after-promotion"]
 LN_ONPOLICY_PROMOTION = [*BONUS, *LN_ONPOLICY_FLAGS]
+# RRD's subset size of sail.py's defaults until `decomposition-subset` chose 256 (the presets of --algo keep 64)
+K64 = ["--decomposition-subset", "64"]
 # the layer-normed critics, the on-policy D, the rate-unit return decomposition and D's normalised actions: with the
 # return bonus, sail.py's defaults until the learned action cost joined them
 DAN_FLAGS = [*LN_ONPOLICY_FLAGS, "--return-decomposition", "1", "--decomposition-unit", "rate", "--disc-action-norm"]
 # those and the learned action cost, in the reward and in the actor's loss
 COST_ACTOR_FLAGS = [*DAN_FLAGS, "--action-cost", "reward-and-actor"]
 # with R_E dropping its lowest return first: sail.py's defaults until R_E's Pareto rule joined them
-ACTOR_COST = [*COST_ACTOR_FLAGS, "--teacher-keep", "return"]
-# sail.py's defaults: the same with R_E's Pareto rule (`pareto-teacher` chose it)
-DEFAULTS = [*COST_ACTOR_FLAGS, "--teacher-keep", "pareto"]
+ACTOR_COST = [*COST_ACTOR_FLAGS, *K64, "--teacher-keep", "return"]
+# the same with R_E's Pareto rule (`pareto-teacher` chose it): sail.py's defaults until K = 256
+PARETO = [*COST_ACTOR_FLAGS, *K64, "--teacher-keep", "pareto"]
+# sail.py's defaults: the same with RRD's subset size K = 256 (`decomposition-subset` chose it)
+DEFAULTS = [*COST_ACTOR_FLAGS, "--decomposition-subset", "256", "--teacher-keep", "pareto"]
 # the earlier defaults: the same without the learned action cost
-FIVE_ADDITIONS = [*DAN_FLAGS, "--action-cost", "none", "--teacher-keep", "return"]
+FIVE_ADDITIONS = [*DAN_FLAGS, *K64, "--action-cost", "none", "--teacher-keep", "return"]
 # the defaults before R_E's Pareto rule, 300k steps
 SAIL_ACTOR_COST = sail("SAIL", *OFF_POLICY, *ACTOR_COST)
 DAC = sail("DAC", *OFF_POLICY, "--algo", "dac")
@@ -158,7 +162,7 @@ GRIDS = {
     # what they cost (results/rrd_probe.py); with the explicit term Ant-v5's c came to 0.34-0.35 (seed 1's CSV;
     # the env's weight is 0.5)
     "learning-action-cost": grid(ALL_ENVS, {"sail-ln-onpolicy-promotion-rrd1-rate-dan-cost": sail(
-        "SAIL (--action-cost reward)", *OFF_POLICY, *DAN_FLAGS, "--action-cost", "reward", "--teacher-keep",
+        "SAIL (--action-cost reward)", *OFF_POLICY, *DAN_FLAGS, *K64, "--action-cost", "reward", "--teacher-keep",
         "return")}, [1, 2, 3]),
     # the same, with the actor charged that learned cost beside Q (--action-cost reward-and-actor): on Ant-v5 the
     # critic's Q is nearly flat in the action (Q at the zero action nearly Q at the actor's), so the cost in the
@@ -215,19 +219,18 @@ GRIDS = {
     #    last checkpoint; Ant-v5 seed 9's two runs were one run, step for step), the other rule's run on that seed
     #    is the same run and is not made again: its final is that run's (added before Ant-v5's seeds 10 and 11)
     "weak-pareto": [line for env in ["Walker2d-v5", "Hopper-v5", "Ant-v5"] for line in grid(
-        [env], {"sail-weak-pareto": sail("SAIL (weak teacher, --teacher-keep pareto)", *OFF_POLICY, *DEFAULTS,
+        [env], {"sail-weak-pareto": sail("SAIL (weak teacher, --teacher-keep pareto)", *OFF_POLICY, *PARETO,
                                          "--demos", f"demos/{env}-weak.npz")},
         [9, 10, 11])],
     "pareto-teacher": grid(["Hopper-v5", "Walker2d-v5", "Ant-v5"], {
         "sail-dan-cost-actor": SAIL_ACTOR_COST,
-        "sail-pareto": sail("SAIL (--teacher-keep pareto)", *OFF_POLICY, *DEFAULTS)},
+        "sail-pareto": sail("SAIL (--teacher-keep pareto)", *OFF_POLICY, *PARETO)},
         [9, 10, 11]),
-    # the confirmation of `--teacher-keep pareto`, the defaults since `pareto-teacher`, on the seeds that no
-    # decision saw (6-8; `confirm` ran them with `return`): whatever they show is the result, with no rerun and no
-    # change of the defaults on their account. HalfCheetah-v5 and Swimmer-v5 are not run: every episode there
-    # lasts 1000 steps, where the two rules keep the same episodes, so `confirm`'s runs are theirs
-    "confirm-pareto": grid(["Hopper-v5", "Walker2d-v5", "Ant-v5"], {
-        "sail-pareto": sail("SAIL (--teacher-keep pareto)", *OFF_POLICY, *DEFAULTS)}, [6, 7, 8]),
+    # the confirmation of today's defaults (R_E's Pareto rule from `pareto-teacher`, K = 256 from
+    # `decomposition-subset`) on the seeds that no decision saw (6-8; `confirm` ran them with the defaults of
+    # seeds 1-5): whatever they show is the result, with no rerun and no change of the defaults on their account
+    "confirm-defaults": grid(ALL_ENVS, {"sail-pareto-k256": sail(
+        "SAIL (--teacher-keep pareto --decomposition-subset 256)", *OFF_POLICY, *DEFAULTS)}, [6, 7, 8]),
     # Which policy sail.py should score and save: TD3's actor or its Polyak-averaged target actor (a smoothed
     # actor; Hopper-v5 defaults seed 9 at 300k: the actor falls after ~19 steps, the target runs 1000). Measured on
     # the last checkpoint of each run of `pareto-teacher` and of this grid (HalfCheetah-v5 and Swimmer-v5, where
@@ -248,7 +251,7 @@ GRIDS = {
     # than 5%, the other envs are not run and K = 256 is not adopted
     "decomposition-subset": [line for env in ["Walker2d-v5", "Hopper-v5", "HalfCheetah-v5", "Ant-v5", "Swimmer-v5"]
                              for line in grid([env], {"sail-pareto-k256": sail(
-                                 "SAIL (--teacher-keep pareto --decomposition-subset 256)", *OFF_POLICY, *DEFAULTS,
+                                 "SAIL (--teacher-keep pareto --decomposition-subset 256)", *OFF_POLICY, *PARETO,
                                  "--decomposition-subset", "256")}, [9, 10, 11])],
     # K = 1000, the whole episode (every env's time limit): RRD's subset variance term is then 0, and with it the pull
     # towards a reward flat within episodes. Fresh reward models fitted to a run's R_B (`rrd_probe.py --refit`),
@@ -261,7 +264,7 @@ GRIDS = {
     # 5%, the other envs are not run and K = 1000 is not adopted
     "decomposition-whole": [line for env in ["HalfCheetah-v5", "Walker2d-v5", "Hopper-v5", "Ant-v5", "Swimmer-v5"]
                             for line in grid([env], {"sail-pareto-k1000": sail(
-                                "SAIL (--teacher-keep pareto --decomposition-subset 1000)", *OFF_POLICY, *DEFAULTS,
+                                "SAIL (--teacher-keep pareto --decomposition-subset 1000)", *OFF_POLICY, *PARETO,
                                 "--decomposition-subset", "1000")}, [9, 10, 11])],
     # K = 1000 with the learned reward weighted 3 (--return-decomposition 3), a diagnosis, no decision on it. With K =
     # 1000 the learned reward moves with HalfCheetah-v5's dense one (slope 0.67-0.95), yet the finals gained only +5.0%
@@ -280,7 +283,7 @@ GRIDS = {
     # on Hopper-v5, weight 1's (decomposition-whole/)
     "decomposition-weight": grid(["HalfCheetah-v5", "Walker2d-v5", "Hopper-v5", "Ant-v5"], {
         "sail-pareto-k1000-w3": sail(
-            "SAIL (--teacher-keep pareto --decomposition-subset 1000 --return-decomposition 3)", *OFF_POLICY, *DEFAULTS,
+            "SAIL (--teacher-keep pareto --decomposition-subset 1000 --return-decomposition 3)", *OFF_POLICY, *PARETO,
             "--decomposition-subset", "1000", "--return-decomposition", "3")}, [9]),
     # K = 256 with the weak teachers, beside `weak-pareto` (K = 64): on Walker2d-v5 seed 9 `pareto` stood from 60k to
     # 150k while D's reward fell with velocity; K = 256 kept the learned reward's slope against the dense one on
@@ -289,7 +292,7 @@ GRIDS = {
     # weak-teacher goal (final >= 1.5x standing on each seed) and `weak-pareto`'s evaluations, seed by seed
     "weak-k256": [line for env in ["Walker2d-v5", "Hopper-v5", "Ant-v5"] for line in grid(
         [env], {"sail-weak-pareto-k256": sail("SAIL (weak teacher, --teacher-keep pareto --decomposition-subset 256)",
-                                              *OFF_POLICY, *DEFAULTS, "--decomposition-subset", "256",
+                                              *OFF_POLICY, *PARETO, "--decomposition-subset", "256",
                                               "--demos", f"demos/{env}-weak.npz")}, [9, 10, 11])],
     # Two updates per env step (--utd 2, RLPD's update-to-data ratio; each trains the reward model and TD3).
     # On HalfCheetah-v5 the defaults end at 6816 (seeds 9-11, K = 64), about 90% of TD3 on the dense reward at 300k
@@ -303,7 +306,7 @@ GRIDS = {
     # HalfCheetah-v5 and Hopper-v5 run first: if either's mean is more than 5% lower, or neither's more than 5%
     # higher, the other envs are not run and --utd 2 is not adopted
     "utd2": [line for env in ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Swimmer-v5"] for line in grid(
-        [env], {"sail-pareto-utd2": sail("SAIL (--teacher-keep pareto --utd 2)", *OFF_POLICY, *DEFAULTS,
+        [env], {"sail-pareto-utd2": sail("SAIL (--teacher-keep pareto --utd 2)", *OFF_POLICY, *PARETO,
                                          "--utd", "2")}, [9, 10, 11])],
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
