@@ -1518,6 +1518,12 @@ def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     assert re.match(r"squared action norm per step: actor \d+\.\d{3} \(\d+\.\d{3} in the first 20 steps\)",
                     lines[summary + 2])  # and the control cost it makes
     assert "control cost weight 0.001:" in lines[summary + 2]  # Hopper-v5's
+    # the teacher's and R_E's squared action norms, over whole episodes and (in brackets) their first 20 steps
+    with np.load(json.load(open(straight_run / "config.json"))["demos"]) as demos:
+        teacher = (demos["actions"][:demos["episode_lengths"][0]] ** 2).sum(-1)
+    kept = [data[1] ** 2 for _, data in torch.load(straight_run / "checkpoint.pt")["teacher_buffer"]["episodes"]]
+    assert (f"teacher {teacher.mean():.3f} ({teacher[:20].mean():.3f}), R_E's {len(kept)} episodes "
+            f"{np.mean([a.sum(-1).mean() for a in kept]):.3f} ") in lines[summary + 2]
     training = lines[summary + 4]  # R_B's episodes: the straight run's 1000 steps, nearly all falls
     assert lines[summary + 3].startswith("training episodes (R_B") and training.startswith("  0-50000: ")
     falls = int(training.split(" ended early")[0].split(", ")[-1])

@@ -10,7 +10,8 @@ the first observation entry, which on Ant-v5, Hopper-v5 and
 Walker2d-v5 is the torso's height (their observations leave out the x position), and on Ant-v5
 the steps its torso spent upside down (entries 1-4 are the torso's orientation quaternion w, x,
 y, z: the body's up axis points down where 1 - 2(x^2 + y^2) < 0); then the height range over
-the run's teacher episodes, and the squared action norm per step of actor and teacher, which the
+the run's teacher episodes, and the squared action norm per step of actor, teacher and R_E's episodes at
+the checkpoint (in brackets: over the first 20 steps of each episode), which the
 env's dense reward charges as control cost (Ant-v5: 0.5 a step per unit). Gymnasium's locomotion envs end an episode early when the body leaves
 its healthy range (Ant-v5: a torso height outside [0.2, 1.0]; lying upside down is inside it).
 An episode ended early if it is shorter than the time limit (with DAC's absorbing states, one step
@@ -112,9 +113,14 @@ with np.load(config.get("demos") or default_demo_path(config["env"]), allow_pick
     first = demos["observations"][:ends[-1], 0]
     print(f"teacher ({config['num_demos']} episodes): first entry {first.min():.2f}-{first.max():.2f}, "
           f"lengths {', '.join(str(n) for n in demos['episode_lengths'][:config['num_demos']])}")
-    teacher_cost = (demos["actions"][:ends[-1]] ** 2).sum(-1).mean()
+    squared = (demos["actions"][:ends[-1]] ** 2).sum(-1)
+    teacher_cost = squared.mean()
+    teacher_start = np.mean([squared[end - n:end - n + 20].mean() for end, n in zip(ends, demos["episode_lengths"])])
+# R_E's episodes at the end of the run (the teacher's that are left and the promoted ones): how hard they start
+kept = [np.asarray(data[1]) ** 2 for _, data in checkpoint["teacher_buffer"]["episodes"]]
 print(f"squared action norm per step: actor {np.mean(action_cost):.3f} ({np.mean(start_cost):.3f} in the first 20 "
-      f"steps), teacher {teacher_cost:.3f}; control cost "
+      f"steps), teacher {teacher_cost:.3f} ({teacher_start:.3f}), R_E's {len(kept)} episodes "
+      f"{np.mean([a.sum(-1).mean() for a in kept]):.3f} ({np.mean([a[:20].sum(-1).mean() for a in kept]):.3f}); control cost "
       f"weight {weight}: {weight * np.mean(action_cost) * env.max_episode_steps:.0f} against "
       f"{weight * teacher_cost * env.max_episode_steps:.0f} over {env.max_episode_steps} steps")
 
