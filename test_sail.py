@@ -1503,9 +1503,16 @@ def test_terminal_refit_fits_the_critic_to_r_b_s_terminal_transitions_when_they_
 
 def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     probe = os.path.join("results", "early_ends.py")
-    proc, missing, resting = run_scripts((probe, str(straight_run), "--episodes", "3"), (probe, str(tmp_path)),
-                                         (probe, str(straight_run), "--episodes", "2", "--zero-start", "1000"))
+    proc, missing, resting, timeless = run_scripts(
+        (probe, str(straight_run), "--episodes", "3"), (probe, str(tmp_path)),
+        (probe, str(straight_run), "--episodes", "2", "--zero-start", "1000"),
+        (probe, str(straight_run), "--episodes", "1", "--time-left", "0.0"))
     assert proc.returncode == 0 and resting.returncode == 0, proc.stderr[-3000:] + resting.stderr[-3000:]
+    # --time-left X: the actor sees 1 - t/T as X; the same first episode (env seed 1000) then goes otherwise
+    assert timeless.returncode == 0, timeless.stderr[-3000:]
+    assert "Hopper-v5, actor (seeing the time feature as 0.0): mean return" in timeless.stdout
+    first = [next(line for line in out.stdout.splitlines() if line.startswith("episode 1:")) for out in (proc, timeless)]
+    assert first[0] != first[1], first
     # --zero-start N: the zero action for each episode's first N steps, here for all of them
     assert "Hopper-v5, actor (the zero action for the first 1000 steps): mean return" in resting.stdout
     assert "squared action norm per step: actor 0.000 (0.000 in the first 20 steps)" in resting.stdout

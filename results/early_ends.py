@@ -1,6 +1,7 @@
 """The early-end probe: which of a run's evaluation episodes end before the time limit, and how.
 
     python results/early_ends.py RUN_DIR [--episodes 20] [--seed 1000] [--target] [--rest-when-upside-down] [--zero-start N]
+        [--time-left X]
 
 RUN_DIR is a sail.py run folder (config.json and checkpoint.pt). Plays --episodes episodes of
 its deterministic actor (--target: its Polyak-averaged target actor) and prints, for each, the
@@ -26,7 +27,8 @@ unit) and its min(Q1, Q2) at the actor's actions and at the zero action, by step
 last 100k transitions; and with --rest-when-upside-down the probe's actor acts as trained until the
 ant is upside down and then takes the zero action: what a turned-over episode would score if the
 actor did not go on spending actions there; with --zero-start N it takes the zero action for each
-episode's first N steps (whether the early ends come from how the actor starts).
+episode's first N steps (whether the early ends come from how the actor starts); with --time-left X the
+actor sees the time feature 1 - t/T as X at every step (whether its falls depend on the time left).
 """
 
 import argparse
@@ -52,6 +54,7 @@ p.add_argument("--window", type=positive_int, default=50_000, help="env steps pe
 p.add_argument("--rest-when-upside-down", action="store_true",
                help="Ant-v5: the zero action from the first step upside down to the episode's end")
 p.add_argument("--zero-start", type=int, default=0, metavar="N", help="the zero action for each episode's first N steps")
+p.add_argument("--time-left", type=float, metavar="X", help="the actor sees the time feature 1 - t/T as X at every step")
 args = p.parse_args()
 config, env, agent, checkpoint = load_agent(p, args.run_dir, args.seed)
 policy = (lambda o: agent.act(o, target=True)) if args.target else agent.act
@@ -60,6 +63,8 @@ unwrapped = env.unwrapped
 ant = config["env"].startswith("Ant")
 if args.rest_when_upside_down and not ant:
     p.error("--rest-when-upside-down is for Ant-v5 runs")
+if args.time_left is not None and (not config["time_feature"] or config["absorbing"]):
+    p.error("--time-left is for runs with the time feature (their observation's last entry) and no absorbing states")
 
 
 def upside_down(states):
@@ -84,6 +89,8 @@ for i in range(args.episodes):
             turned[0] = turned[0] or bool(upside_down(obs[None])[0])
             if turned[0]:
                 return np.zeros(env.action_space.shape, env.action_space.dtype)
+        if args.time_left is not None:
+            obs = np.concatenate([obs[:-1], np.array([args.time_left], obs.dtype)])
         return policy(obs)
 
     episode = rollout(env, policy_noting_x)
@@ -106,7 +113,8 @@ for i in range(args.episodes):
           f"{height.min():.2f}-{height.max():.2f}, {ending}")
 print(f"{config['env']}, {'target actor' if args.target else 'actor'}"
       f"{' (the zero action once upside down)' if args.rest_when_upside_down else ''}"
-      f"{f' (the zero action for the first {args.zero_start} steps)' if args.zero_start else ''}: mean return {np.mean(returns):.1f} over "
+      f"{f' (the zero action for the first {args.zero_start} steps)' if args.zero_start else ''}"
+      f"{f' (seeing the time feature as {args.time_left})' if args.time_left is not None else ''}: mean return {np.mean(returns):.1f} over "
       f"{args.episodes} episodes, {early} ended early (env seed {args.seed})")
 with np.load(config.get("demos") or default_demo_path(config["env"]), allow_pickle=False) as demos:
     ends = np.cumsum(demos["episode_lengths"])[:config["num_demos"]]
