@@ -319,14 +319,14 @@ GRIDS = {
     "decomposition-weight3": [line for env in ["Hopper-v5", "Walker2d-v5", "Ant-v5", "HalfCheetah-v5", "Swimmer-v5"]
                               for line in grid([env], {"sail-pareto-k1000-w3": sail(
                                   "SAIL (--teacher-keep pareto --decomposition-subset 1000 --return-decomposition 3)",
-                                  *OFF_POLICY, *PARETO, "--decomposition-subset", "1000", "--return-decomposition", "3")},
-                                  [10, 11] if env != "Swimmer-v5" else [9, 10, 11])],
+                                  *OFF_POLICY, *PARETO, "--decomposition-subset", "1000",
+                                  "--return-decomposition", "3")}, [10, 11] if env != "Swimmer-v5" else [9, 10, 11])],
     # Without the time feature (--no-time-feature): the observation loses 1 - t/T (the authors' code appends it).
     # No reward of the defaults needs it (D's, the return bonus and the learned one are not functions of t, and a
     # time-limit end is bootstrapped), but the actor is a function of it, and there it is where falls come from.
     # Today's defaults' checkpoints of the confirmation seeds (7 and 8, `confirm-defaults`), 10 episodes of the
     # deterministic actor as it is and seeing 1 - t/T as a constant (`results/early_ends.py --time-left X`,
-    # no-time-feature/time-left/): Hopper-v5 seed 8 at 220k falls in 10 of 10 as it is and in 0 of 10 seeing 0.5
+    # no-time-feature/time-left-*.txt): Hopper-v5 seed 8 at 220k falls in 10 of 10 as it is and in 0 of 10 seeing 0.5
     # (2954); at 160k in 1 of 10 as it is and 10 of 10 seeing 0.75; seed 7 at 160k in 7 of 10 as it is and 0-1
     # seeing 0.0-0.5; Walker2d-v5 seed 7 at 220k in 0 of 10 as it is and 8 of 10 seeing 0.0. In effect one policy
     # per time left, each trained on other states, and whichever is weak at the moment shows up as a fall.
