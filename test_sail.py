@@ -384,6 +384,26 @@ def test_pareto_keep_is_the_return_rule_where_episodes_have_one_length():
     assert len({len(k) for k in kept["return"]}) > 1  # the buffer filled and promoted along the way
 
 
+def test_fall_margin_leaves_out_the_steps_before_a_termination():
+    """D's positives with a fall margin of 5: never the last 5 steps of an episode that ended by termination;
+    every step of one cut by the time limit; and where no kept episode fell, the very batch of margin 0."""
+    teacher = TeacherBuffer(capacity=1000)
+    teacher.add_episode(10.0, *episode_arrays(1.0, 20))  # cut by the time limit
+    obs, actions, next_obs, terminated = episode_arrays(2.0, 8)
+    obs[:, 1] = np.arange(8)  # step index
+    terminated[-1] = 1.0
+    torch.manual_seed(0)
+    no_fall = teacher.sample(500)
+    torch.manual_seed(0)
+    assert all(torch.equal(a, b) for a, b in zip(no_fall, teacher.sample(500, fall_margin=5)))
+    teacher.add_episode(12.0, obs, actions, next_obs, terminated)
+    fallen = teacher.sample(4000, fall_margin=5)[0]
+    fell = fallen[:, 0] == 2.0
+    assert set(fallen[fell, 1].tolist()) == {0.0, 1.0, 2.0}  # steps 3-7 are the last five
+    assert int((~fell).sum()) > 3000  # the 20 steps of the whole episode, against 3 of the fallen one
+    assert set(teacher.sample(4000)[0][:, 1].tolist()) >= {5.0, 6.0, 7.0}  # the TD3 batches keep them
+
+
 @pytest.mark.parametrize("alpha", [0.0, 0.25, 0.5, 1.0])
 def test_mixed_sampling_proportions(alpha):
     teacher = TeacherBuffer(capacity=1000)
@@ -1588,7 +1608,8 @@ def test_checkpoint_probe_reports_q_slope_and_d(straight_paper_run, straight_run
     proc, decomposition = run_scripts((probe, str(straight_paper_run)), (probe, str(straight_run)))
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert decomposition.returncode == 0, decomposition.stderr[-3000:]
-    learned = [line for line in decomposition.stdout.splitlines() if "transitions, D's reward" in line]
+    learned = [line for line in decomposition.stdout.splitlines()
+               if "transitions, D's reward" in line and "steps to the end" not in line]
     parsed = [re.search(r"D's reward (-?\d+\.\d+), learned reward (-?\d+\.\d+), critic's reward (-?\d+\.\d+), "
                         r"Q -?\d+\.\d, squared action norm", line) for line in learned]
     assert learned and all(parsed)
@@ -1611,9 +1632,17 @@ def test_checkpoint_probe_reports_q_slope_and_d(straight_paper_run, straight_run
     # R_E: the demo episode and the promoted ones, the lowest return first: the run's last threshold
     header, *kept = teacher_lines
     count = int(re.fullmatch(r"R_E: (\d+) episodes \(return, steps, mean of observation 8\):", header).group(1))
+    kept, by_end = kept[:count], kept[count:]
     returns = [float(line.split(",")[0]) for line in kept]
-    assert len(kept) == count and returns == sorted(returns)
+    assert returns == sorted(returns)
     assert returns[0] == pytest.approx(float(read_csv(straight_paper_run)[-1]["teacher_threshold"]), abs=0.05)
+    # then R_E by steps to the end of each episode: every kept transition counted once, in the fallen or the cut
+    assert by_end[0] == "R_E by steps to its episode's end:"
+    counted = [re.fullmatch(r"  (fell|ran to the time limit), \d+(-\d+| or more) steps to the end: (\d+) transitions, "
+                            r"D's reward \d+\.\d\d, Q -?\d+\.\d, observation 8 -?\d+\.\d\d", line) for line in by_end[1:]]
+    assert by_end[-1] == "  ran to the time limit: no episode"  # the straight runs' episodes are short
+    assert all(counted[:-1]), by_end
+    assert sum(int(m[3]) for m in counted[:-1]) == sum(int(line.split(", ")[1]) for line in kept)
 
 
 def test_checkpoints_are_read_onto_the_cpu_whatever_the_run_device(tmp_path, monkeypatch):

@@ -18,7 +18,9 @@ Walker2d-v5; 5 is Hopper-v5's forward velocity): how many there are, D's reward 
 sail or airl), the learned reward of --return-decomposition where the run has one and the critic's whole reward
 (D's plus the learned one over its unit, as sail.py's update adds them; without a --return-bonus), the critic's
 min(Q1, Q2) at the actions taken, and the squared action norm. Then what R_E holds: each kept episode's return, length and mean of
-observation --velocity-index, the lowest return first.
+observation --velocity-index, the lowest return first; and its rewards, Q and observation --velocity-index by steps
+to the end of their episode (1-10, 11-30, 31-60, 61-100, more), for the episodes that fell (ended by a termination)
+and for those the time limit cut.
 """
 
 import argparse
@@ -108,3 +110,25 @@ teacher_episodes = sorted(state["teacher_buffer"]["episodes"], key=lambda episod
 print(f"R_E: {len(teacher_episodes)} episodes (return, steps, mean of observation {args.velocity_index}):")
 for episodic_return, (episode_obs, *_) in teacher_episodes:
     print(f"  {episodic_return:.1f}, {len(episode_obs)}, {episode_obs[:, args.velocity_index].mean().item():.2f}")
+
+# The steps into a fall: R_E's rewards and Q by steps to the end of their episode, for the episodes that ended by
+# a termination and for those the time limit cut (where a fast gait falls, D may pay most for the last steps)
+print("R_E by steps to its episode's end:")
+for fell in (True, False):
+    episodes = [data for _, data in teacher_episodes if (data[3][-1] > 0) == fell]
+    if not episodes:
+        print(f"  {'fell' if fell else 'ran to the time limit'}: no episode")
+        continue
+    obs, actions, next_obs = (torch.cat([data[i] for data in episodes]) for i in range(3))
+    steps_to_end = torch.cat([torch.arange(len(data[0]), 0, -1) for data in episodes])
+    d_reward, learned, _ = critic_reward(config, state, parts, obs, actions, next_obs, env.max_episode_steps)
+    q_taken = torch.min(*critic(obs, actions))
+    for first, last in ((1, 10), (11, 30), (31, 60), (61, 100), (101, None)):
+        inside = (steps_to_end >= first) & (steps_to_end <= (last or len(steps_to_end)))
+        if inside.any():
+            print(f"  {'fell' if fell else 'ran to the time limit'}, {first}{f'-{last}' if last else ' or more'} steps "
+                  f"to the end: {int(inside.sum())} transitions, "
+                  + (f"D's reward {d_reward[inside].mean().item():.2f}, " if d_reward is not None else "")
+                  + (f"learned {learned[inside].mean().item():.2f}, " if learned is not None else "")
+                  + f"Q {q_taken[inside].mean().item():.1f}, observation {args.velocity_index} "
+                  f"{obs[inside][:, args.velocity_index].mean().item():.2f}")
