@@ -196,11 +196,11 @@ class TeacherBuffer:
         """Uniform batch (obs, actions, next_obs, terminated, episodic return of each one's episode)
         over the kept transitions; with `fall_margin` N, over those more than N steps before a termination
         (all of them where none is)."""
-        idx = torch.randint(0, len(self._flat[0]), (batch_size,))
-        if fall_margin > 0:
-            allowed = (self._steps_to_fall > fall_margin).nonzero().squeeze(1)
-            if 0 < len(allowed) < len(self._flat[0]):
-                idx = allowed[torch.randint(0, len(allowed), (batch_size,))]
+        allowed = (self._steps_to_fall > fall_margin).nonzero().squeeze(1) if fall_margin > 0 else None
+        if allowed is not None and 0 < len(allowed) < len(self._flat[0]):
+            idx = allowed[torch.randint(0, len(allowed), (batch_size,))]
+        else:
+            idx = torch.randint(0, len(self._flat[0]), (batch_size,))
         return (*(t[idx] for t in self._flat), self._flat_returns[idx])
 
     def state_dict(self):
