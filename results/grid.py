@@ -337,24 +337,6 @@ GRIDS = {
     "no-time-feature": [line for env in ["Hopper-v5", "Walker2d-v5", "HalfCheetah-v5", "Ant-v5", "Swimmer-v5"]
                         for line in grid([env], {"sail-no-time-feature": sail(
                             "SAIL (--no-time-feature)", *OFF_POLICY, *DEFAULTS, "--no-time-feature")}, [9, 10, 11])],
-    # D's positives without R_E's last 100 steps before a fall (--disc-fall-margin 100), on top of
-    # --no-time-feature. On Hopper-v5 R_E holds episodes that fell (a fast run that falls beats a whole one per
-    # step, and the Pareto rule keeps it), and the agent speeds up into a fall: on no-time-feature's own R_E at
-    # 160k and 300k (seeds 9-11; no-time-feature/fall-reward.txt) the x velocity over the last 1-10 steps before
-    # a termination is 3.3-4.3 against 1.7-2.2 more than 100 steps before, the learned reward 1.26-1.58 against
-    # 0.88-0.96, D's reward 1.5-3.1 against 0.7-0.95 in 4 of the 6 checkpoints, while the critic's Q falls to
-    # 14-34 (221-238 more than 100 steps before): D pays most for the steps into a fall. 61-100 steps before a
-    # fall they are still raised (velocity 2.8-2.9, D's 0.8-1.7), hence 100. The rule, fixed before these runs
-    # (final = mean of the last 5 evaluations, seeds 9-11, against no-time-feature's runs of the same seeds):
-    # --disc-fall-margin 100 becomes the default if --no-time-feature does and its 3-seed mean is above on
-    # Hopper-v5 by more than 5% and lower by more than 5% on neither Walker2d-v5 nor Ant-v5. Hopper-v5 runs first:
-    # if it is not above by more than 5%, the other envs are not run. HalfCheetah-v5 and Swimmer-v5 never
-    # terminate an episode, and where R_E holds no fall the margin changes no batch (test_sail.py), so their runs
-    # would be the baseline's, bit for bit
-    "fall-margin": [line for env in ["Hopper-v5", "Walker2d-v5", "Ant-v5"]
-                    for line in grid([env], {"sail-no-time-feature-fall100": sail(
-                        "SAIL (--no-time-feature --disc-fall-margin 100)", *OFF_POLICY, *DEFAULTS, "--no-time-feature",
-                        "--disc-fall-margin", "100")}, [9, 10, 11])],
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
                        {"sail-4demos": sail("SAIL-paper", *PAPER, "--num-demos", "4"),
