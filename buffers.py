@@ -167,10 +167,6 @@ class TeacherBuffer:
             self.episodes.remove(self._first_to_leave(new))
         self._flat = [torch.cat(parts) for parts in zip(*(data for _, data in self.episodes))]
         self._flat_returns = torch.cat([torch.full((len(data[0]),), ret) for ret, data in self.episodes])
-        # steps from each transition to its episode's termination (inf where the episode was cut by the time limit)
-        self._steps_to_fall = torch.cat([torch.arange(len(data[0]), 0, -1, dtype=torch.float32)
-                                         if data[3][-1] > 0 else torch.full((len(data[0]),), float("inf"))
-                                         for _, data in self.episodes])
 
     def _first_to_leave(self, new):
         others = [ep for ep in self.episodes if ep is not new]
@@ -192,15 +188,10 @@ class TeacherBuffer:
         self.add_episode(episodic_return, obs, actions, next_obs, terminated)
         return True
 
-    def sample(self, batch_size, fall_margin=0):
+    def sample(self, batch_size):
         """Uniform batch (obs, actions, next_obs, terminated, episodic return of each one's episode)
-        over the kept transitions; with `fall_margin` N, over those more than N steps before a termination
-        (all of them where none is)."""
-        allowed = (self._steps_to_fall > fall_margin).nonzero().squeeze(1) if fall_margin > 0 else None
-        if allowed is not None and 0 < len(allowed) < len(self._flat[0]):
-            idx = allowed[torch.randint(0, len(allowed), (batch_size,))]
-        else:
-            idx = torch.randint(0, len(self._flat[0]), (batch_size,))
+        over the kept transitions."""
+        idx = torch.randint(0, len(self._flat[0]), (batch_size,))
         return (*(t[idx] for t in self._flat), self._flat_returns[idx])
 
     def state_dict(self):

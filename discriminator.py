@@ -80,13 +80,12 @@ def discriminator_loss(disc, teacher_obs, teacher_act, self_obs, self_act, entro
 
 
 def train_discriminator(disc, optimizer, teacher_buffer, self_buffer, steps, batch_size, entropy_coef, grad_penalty,
-                        recent_window=None, fall_margin=0):
-    """`steps` minibatches of Eq. (4): `batch_size` samples of R_E labelled 1 (with `fall_margin` N, none of
-    the last N steps before a termination) and as many of R_B labelled 0 (with `recent_window`, of R_B's most
-    recent transitions: the on-policy D)."""
+                        recent_window=None):
+    """`steps` minibatches of Eq. (4): `batch_size` samples of R_E labelled 1 and as many of R_B
+    labelled 0 (with `recent_window`, of R_B's most recent transitions: the on-policy D)."""
     device = disc.obs_norm.mean.device
     for _ in range(steps):
-        t_obs, t_act, *_ = teacher_buffer.sample(batch_size, fall_margin)
+        t_obs, t_act, *_ = teacher_buffer.sample(batch_size)
         if recent_window is not None:
             b_obs, b_act, *_ = self_buffer.sample_recent(batch_size, recent_window)
         else:

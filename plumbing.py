@@ -84,14 +84,6 @@ def positive_int(text):
     return value
 
 
-def non_negative_int(text):
-    """argparse type: an integer >= 0."""
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
-
-
 def seed(text):
     """argparse type: a seed that numpy, gymnasium and torch all accept (0 <= seed < 2**32)."""
     value = int(text)
@@ -486,9 +478,9 @@ def read_config(run_dir):
 
 
 # flags that have left sail.py, with the value today's code always runs: a saved run with another cannot resume
-RETIRED_FLAGS = {"update_every": 1, "noise_color": 0.0, "actor_lr": None}
+RETIRED_FLAGS = {"update_every": 1, "noise_color": 0.0, "actor_lr": None, "disc_fall_margin": 0}
 # flags added to sail.py after runs were saved, with the value the older code always ran: a run without one ran so
-ADDED_FLAGS = {"utd": 1, "disc_fall_margin": 0}
+ADDED_FLAGS = {"utd": 1}
 
 
 def resume_config(run_dir, args, given, changeable, script):

@@ -132,8 +132,6 @@ def parse_args(argv=None):
     g.add_argument("--grad-penalty", type=nonneg, default=10.0, help="gradient penalty weight")
     g.add_argument("--entropy-coef", type=nonneg, default=0.01, help="Bernoulli entropy bonus weight")
     g.add_argument("--disc-action-norm", action=on_off, default=True, help="normalise D's actions as its states")
-    g.add_argument("--disc-fall-margin", type=plumbing.non_negative_int, default=0,
-                   help="D's positives leave out R_E's last N steps before each termination (a fall)")
     g = p.add_argument_group("SAIL and its ablations")
     g.add_argument("--alpha", type=float, default=0.5, help="R_E's share of TD3 batches before a promotion (0: no LfD)")
     g.add_argument("--teacher-capacity", type=pos, default=10_000, help="capacity of R_E in transitions")
@@ -356,8 +354,7 @@ def train(args):
                                                                      and s.first_promotion_step is not None)
                         stats.update(train_discriminator(disc, parts["disc_optimizer"], teacher_buffer, self_buffer,
                                                          args.disc_steps, args.batch_size, args.entropy_coef,
-                                                         args.grad_penalty, args.on_policy_window if recent else None,
-                                                         args.disc_fall_margin))
+                                                         args.grad_penalty, args.on_policy_window if recent else None))
                     was_learning = True
 
                     # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)

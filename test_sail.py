@@ -384,26 +384,6 @@ def test_pareto_keep_is_the_return_rule_where_episodes_have_one_length():
     assert len({len(k) for k in kept["return"]}) > 1  # the buffer filled and promoted along the way
 
 
-def test_fall_margin_leaves_out_the_steps_before_a_termination():
-    """D's positives with a fall margin of 5: never the last 5 steps of an episode that ended by termination;
-    every step of one cut by the time limit; and where no kept episode fell, the very batch of margin 0."""
-    teacher = TeacherBuffer(capacity=1000)
-    teacher.add_episode(10.0, *episode_arrays(1.0, 20))  # cut by the time limit
-    obs, actions, next_obs, terminated = episode_arrays(2.0, 8)
-    obs[:, 1] = np.arange(8)  # step index
-    terminated[-1] = 1.0
-    torch.manual_seed(0)
-    no_fall = teacher.sample(500)
-    torch.manual_seed(0)
-    assert all(torch.equal(a, b) for a, b in zip(no_fall, teacher.sample(500, fall_margin=5)))
-    teacher.add_episode(12.0, obs, actions, next_obs, terminated)
-    fallen = teacher.sample(4000, fall_margin=5)[0]
-    fell = fallen[:, 0] == 2.0
-    assert set(fallen[fell, 1].tolist()) == {0.0, 1.0, 2.0}  # steps 3-7 are the last five
-    assert int((~fell).sum()) > 3000  # the 20 steps of the whole episode, against 3 of the fallen one
-    assert set(teacher.sample(4000)[0][:, 1].tolist()) >= {5.0, 6.0, 7.0}  # the TD3 batches keep them
-
-
 @pytest.mark.parametrize("alpha", [0.0, 0.25, 0.5, 1.0])
 def test_mixed_sampling_proportions(alpha):
     teacher = TeacherBuffer(capacity=1000)

@@ -321,23 +321,6 @@ GRIDS = {
                                   "SAIL (--teacher-keep pareto --decomposition-subset 1000 --return-decomposition 3)",
                                   *OFF_POLICY, *PARETO, "--decomposition-subset", "1000",
                                   "--return-decomposition", "3")}, [10, 11] if env != "Swimmer-v5" else [9, 10, 11])],
-    # D's positives without R_E's last 100 steps before a termination (--disc-fall-margin 100), on today's
-    # defaults (with the time feature). On Hopper-v5 R_E holds episodes that fell (a fast run that falls beats a
-    # whole one per step, and the Pareto rule keeps it: 9 of 13, 5 of 10, 6 of 10 of R_E's episodes at 300k for the
-    # defaults' seeds 9-11), and the agent speeds up into a fall where D and the learned reward pay most: without the
-    # time feature (no-time-feature/fall-reward.txt) and with it (decomposition-weight3's Hopper-v5 seed 10 at 160k,
-    # its probe-160k.txt: over the last 1-60 steps before a fall x velocity 3.0-3.3 against 1.73 more than 100 steps
-    # before, the learned reward 3.75-4.05 against 2.55, D's 1.23-1.33 against 0.80; 61-100 steps before still
-    # raised, hence 100). The rule, fixed before these runs (final = mean of the last 5 evaluations, seeds 9-11,
-    # against `decomposition-subset`'s K = 256 runs, today's defaults, of the same seeds): --disc-fall-margin 100
-    # becomes the default if its 3-seed mean is above on Hopper-v5 by more than 5% and lower by more than 5% on
-    # neither Walker2d-v5 nor Ant-v5. Hopper-v5 runs first: if it is not above by more than 5%, the other envs are
-    # not run and it is not adopted. HalfCheetah-v5 and Swimmer-v5 never terminate an episode, and where R_E holds
-    # no fall the margin changes no batch (test_sail.py), so their runs would be the baseline's, bit for bit
-    "fall-margin": [line for env in ["Hopper-v5", "Walker2d-v5", "Ant-v5"]
-                    for line in grid([env], {"sail-pareto-fall100": sail(
-                        "SAIL (--disc-fall-margin 100)", *OFF_POLICY, *DEFAULTS, "--disc-fall-margin", "100")},
-                        [9, 10, 11])],
     # Without the time feature (--no-time-feature): the observation loses 1 - t/T (the authors' code appends it).
     # No reward of the defaults needs it (D's, the return bonus and the learned one are not functions of t, and a
     # time-limit end is bootstrapped), but the actor is a function of it, and there it is where falls come from.
