@@ -1503,16 +1503,22 @@ def test_terminal_refit_fits_the_critic_to_r_b_s_terminal_transitions_when_they_
 
 def test_early_end_probe_reports_each_episode_of_a_run(tmp_path, straight_run):
     probe = os.path.join("results", "early_ends.py")
-    proc, missing, resting, timeless = run_scripts(
+    proc, missing, resting, timeless, noisy, bad_noise = run_scripts(
         (probe, str(straight_run), "--episodes", "3"), (probe, str(tmp_path)),
         (probe, str(straight_run), "--episodes", "2", "--zero-start", "1000"),
-        (probe, str(straight_run), "--episodes", "1", "--time-left", "0.0"))
+        (probe, str(straight_run), "--episodes", "1", "--time-left", "0.0"),
+        (probe, str(straight_run), "--episodes", "1", "--noise", "0.5"),
+        (probe, str(straight_run), "--noise", "0.1", "--target"))
     assert proc.returncode == 0 and resting.returncode == 0, proc.stderr[-3000:] + resting.stderr[-3000:]
+    # --noise X: the actor as training plays it, so the same first episode goes otherwise; not with --target
+    assert noisy.returncode == 0 and "Hopper-v5, actor (with exploration noise 0.5): mean return" in noisy.stdout
+    assert bad_noise.returncode == 2 and "--noise takes X >= 0" in bad_noise.stderr.strip().splitlines()[-1]
     # --time-left X: the actor sees 1 - t/T as X; the same first episode (env seed 1000) then goes otherwise
     assert timeless.returncode == 0, timeless.stderr[-3000:]
     assert "Hopper-v5, actor (seeing the time feature as 0.0): mean return" in timeless.stdout
-    first = [next(line for line in out.stdout.splitlines() if line.startswith("episode 1:")) for out in (proc, timeless)]
-    assert first[0] != first[1], first
+    first = [next(line for line in out.stdout.splitlines() if line.startswith("episode 1:"))
+             for out in (proc, timeless, noisy)]
+    assert first[0] != first[1] and first[0] != first[2], first
     # --zero-start N: the zero action for each episode's first N steps, here for all of them
     assert "Hopper-v5, actor (the zero action for the first 1000 steps): mean return" in resting.stdout
     assert "squared action norm per step: actor 0.000 (0.000 in the first 20 steps)" in resting.stdout

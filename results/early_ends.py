@@ -55,9 +55,16 @@ p.add_argument("--rest-when-upside-down", action="store_true",
                help="Ant-v5: the zero action from the first step upside down to the episode's end")
 p.add_argument("--zero-start", type=int, default=0, metavar="N", help="the zero action for each episode's first N steps")
 p.add_argument("--time-left", type=float, metavar="X", help="the actor sees the time feature 1 - t/T as X at every step")
+p.add_argument("--noise", type=float, default=0.0, metavar="X",
+               help="the actor with training's Gaussian action noise (std X half action ranges): the episodes that "
+                    "R_E's promotions come from")
 args = p.parse_args()
+if args.noise < 0 or (args.noise and args.target):
+    p.error("--noise takes X >= 0 and plays the actor as training does (not with --target)")
 config, env, agent, checkpoint = load_agent(p, args.run_dir, args.seed)
-policy = (lambda o: agent.act(o, target=True)) if args.target else agent.act
+noise_rng = np.random.default_rng(args.seed)
+policy = ((lambda o: agent.act(o, target=True)) if args.target else
+          (lambda o: agent.explore(o, args.noise, noise_rng)) if args.noise else agent.act)
 
 unwrapped = env.unwrapped
 ant = config["env"].startswith("Ant")
@@ -114,7 +121,8 @@ for i in range(args.episodes):
 print(f"{config['env']}, {'target actor' if args.target else 'actor'}"
       f"{' (the zero action once upside down)' if args.rest_when_upside_down else ''}"
       f"{f' (the zero action for the first {args.zero_start} steps)' if args.zero_start else ''}"
-      f"{f' (seeing the time feature as {args.time_left})' if args.time_left is not None else ''}: mean return {np.mean(returns):.1f} over "
+      f"{f' (seeing the time feature as {args.time_left})' if args.time_left is not None else ''}"
+      f"{f' (with exploration noise {args.noise})' if args.noise else ''}: mean return {np.mean(returns):.1f} over "
       f"{args.episodes} episodes, {early} ended early (env seed {args.seed})")
 with np.load(config.get("demos") or default_demo_path(config["env"]), allow_pickle=False) as demos:
     ends = np.cumsum(demos["episode_lengths"])[:config["num_demos"]]
