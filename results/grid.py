@@ -261,38 +261,6 @@ GRIDS = {
                              for line in grid([env], {"sail-pareto-k256": sail(
                                  "SAIL (--teacher-keep pareto --decomposition-subset 256)", *OFF_POLICY, *PARETO,
                                  "--decomposition-subset", "256")}, [9, 10, 11])],
-    # K = 1000, the whole episode (every env's time limit): RRD's subset variance term is then 0, and with it the pull
-    # towards a reward flat within episodes. Fresh reward models fitted to a run's R_B (`rrd_probe.py --refit`),
-    # slope against the dense reward without noise for K = 64, 256 and 1000: HalfCheetah-v5 seed 9 at 100k 0.13,
-    # 0.13 and 0.59 (40000 minibatches); Hopper-v5 seed 9 of `decomposition-subset` at 160k 0.76, 0.92 and 1.05
-    # (20000). The rule, fixed before these runs (final = mean of the last 5 evaluations, seeds 9-11): K = 1000 is
-    # judged as K = 256 is, against the same baselines (above on at least 3 of the 5 envs, lower by more than 5%
-    # on none); if both pass, the default becomes the one whose mean over the 5 envs of (3-seed mean / baseline's)
-    # is higher. HalfCheetah-v5, Walker2d-v5 and Hopper-v5 run first: if any of their means is lower by more than
-    # 5%, the other envs are not run and K = 1000 is not adopted
-    "decomposition-whole": [line for env in ["HalfCheetah-v5", "Walker2d-v5", "Hopper-v5", "Ant-v5", "Swimmer-v5"]
-                            for line in grid([env], {"sail-pareto-k1000": sail(
-                                "SAIL (--teacher-keep pareto --decomposition-subset 1000)", *OFF_POLICY, *PARETO,
-                                "--decomposition-subset", "1000")}, [9, 10, 11])],
-    # K = 1000 with the learned reward weighted 3 (--return-decomposition 3), a diagnosis, no decision on it. With K =
-    # 1000 the learned reward moves with HalfCheetah-v5's dense one (slope 0.67-0.95), yet the finals gained only +5.0%
-    # and +0.4% on seeds 9 and 10. What the critic is given is D's reward (about 0.7 per step) plus the learned reward
-    # over its unit (HalfCheetah-v5's returns per step span about 7), so a step 1 m/s faster is worth about 0.1 more to
-    # it, of the size of D's own spread across speeds (0.70-0.76 at 2.6-10.1 m/s on archive/actor-lr's seed 9 at 300k).
-    # The question: does a learned reward that outweighs D's make the agent run faster than R_E, or, where episodes end
-    # early (Walker2d-v5), does it lose what D's imitation holds (the range unit, which scaled the learned reward up in
-    # the same way, lost Walker2d-v5)? Seed 9 only; it is compared with decomposition-whole's seed 9 (weight 1) and the
-    # defaults' seed 9. A decision would need its own grid and rule, written before its runs. Seed 9's answer
-    # (decomposition-weight/README.md): HalfCheetah-v5 no faster (6685 against 6640), Walker2d-v5 steadier (3728 against
-    # 2839, 4-7 of about 53 training episodes per 50k steps ending early from 150k against 14-24). Hopper-v5 and Ant-v5
-    # seed 9 were added after that answer, with the same question for episodes that end early: does a learned reward
-    # that outweighs D's keep Hopper-v5's actor from falling (weight 1 on seed 9: 1757, six of its last ten evaluations
-    # with a fall) and Ant-v5's from jumping and turning over? Compared with the defaults' seed 9 (pareto-teacher/) and,
-    # on Hopper-v5, weight 1's (decomposition-whole/)
-    "decomposition-weight": grid(["HalfCheetah-v5", "Walker2d-v5", "Hopper-v5", "Ant-v5"], {
-        "sail-pareto-k1000-w3": sail(
-            "SAIL (--teacher-keep pareto --decomposition-subset 1000 --return-decomposition 3)", *OFF_POLICY, *PARETO,
-            "--decomposition-subset", "1000", "--return-decomposition", "3")}, [9]),
     # K = 256 with the weak teachers, beside `weak-pareto` (K = 64): on Walker2d-v5 seed 9 `pareto` stood from 60k to
     # 150k while D's reward fell with velocity; K = 256 kept the learned reward's slope against the dense one on
     # the shipped teacher (0.85 at 160k, decomposition-subset/). A diagnosis of the standing trap, fixed before its
@@ -302,33 +270,6 @@ GRIDS = {
         [env], {"sail-weak-pareto-k256": sail("SAIL (weak teacher, --teacher-keep pareto --decomposition-subset 256)",
                                               *OFF_POLICY, *PARETO, "--decomposition-subset", "256",
                                               "--demos", f"demos/{env}-weak.npz")}, [9, 10, 11])],
-    # Two updates per env step (--utd 2, RLPD's update-to-data ratio; each trains the reward model and TD3).
-    # On HalfCheetah-v5 the defaults end at 6816 (seeds 9-11, K = 64), about 90% of TD3 on the dense reward at 300k
-    # steps (7546 in Tianshou's MuJoCo benchmark, github.com/thu-ml/tianshou, examples/mujoco): the goal of 8000
-    # is above what TD3 reaches with the env's own per-step reward, so no better learned reward reaches it at one
-    # update per step. It costs time: the updates are nearly all of an env step's time (results/README.md,
-    # Timings), so nearly twice the training time. The rule, fixed before these runs (final = mean of the last
-    # 5 evaluations, seeds 9-11, on top of the defaults with K = 64): --utd 2 becomes the default if its 3-seed
-    # mean is above the baseline's (`pareto-teacher`'s sail-pareto and `deploy-target`'s runs) by more than 5% on
-    # at least 3 of the 5 envs and lower by more than 5% on none: for its cost, a tie does not count.
-    # HalfCheetah-v5 and Hopper-v5 run first: if either's mean is more than 5% lower, or neither's more than 5%
-    # higher, the other envs are not run and --utd 2 is not adopted
-    "utd2": [line for env in ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Swimmer-v5"] for line in grid(
-        [env], {"sail-pareto-utd2": sail("SAIL (--teacher-keep pareto --utd 2)", *OFF_POLICY, *PARETO,
-                                         "--utd", "2")}, [9, 10, 11])],
-    # The decision on decomposition-weight's K = 1000 with weight 3. Its seed 9 runs, against today's defaults
-    # (K = 256, `decomposition-subset`) on that seed: Hopper-v5 3168 against 2675, Walker2d-v5 3728 against 3709,
-    # HalfCheetah-v5 6685 against 6673, Ant-v5 2202 against 1940 (decomposition-weight/README.md). Seed 9 chose it,
-    # so the rule, fixed before these runs, asks the other seeds to carry it as well (final = mean of the last 5
-    # evaluations): K = 1000 with weight 3 becomes the default if its mean over seeds 9-11 (seed 9's runs are
-    # decomposition-weight's) is above today's defaults' on at least 3 of the 5 envs and lower by more than 5% on
-    # none, and its mean over seeds 10 and 11 alone is lower by more than 5% on no env. Hopper-v5 and Walker2d-v5
-    # run first: if either fails the second clause or the third, the other envs are not run and it is not adopted
-    "decomposition-weight3": [line for env in ["Hopper-v5", "Walker2d-v5", "Ant-v5", "HalfCheetah-v5", "Swimmer-v5"]
-                              for line in grid([env], {"sail-pareto-k1000-w3": sail(
-                                  "SAIL (--teacher-keep pareto --decomposition-subset 1000 --return-decomposition 3)",
-                                  *OFF_POLICY, *PARETO, "--decomposition-subset", "1000",
-                                  "--return-decomposition", "3")}, [10, 11] if env != "Swimmer-v5" else [9, 10, 11])],
     # Without the time feature (--no-time-feature): the observation loses 1 - t/T (the authors' code appends it).
     # No reward of the defaults needs it (D's, the return bonus and the learned one are not functions of t, and a
     # time-limit end is bootstrapped), but the actor is a function of it, and there it is where falls come from.
