@@ -1053,8 +1053,8 @@ def test_actor_action_cost_charges_the_learned_cost_over_the_decomposition_unit(
         agent = TD3(obs_dim=3, act_dim=2, action_low=-np.ones(2), action_high=np.ones(2), hidden=(16, 16),
                     policy_delay=1, lr=1e-2)
         agent.critic.q1, agent.critic.q2 = _QuadraticQ([0.6, 0.6]), _QuadraticQ([0.6, 0.6])
-        args = argparse.Namespace(batch_size=64, reward="none", return_bonus=0.0, absorbing=False,
-                                  return_decomposition=1.0, decomposition_subset=16,
+        args = argparse.Namespace(batch_size=64, reward="none", return_bonus=0.0, return_bonus_of="return",
+                                  absorbing=False, return_decomposition=1.0, decomposition_subset=16,
                                   action_cost="reward-and-actor" if charged else "reward")
         for _ in range(200):
             sail_update(agent, None, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(0.0, 1.0),
