@@ -49,13 +49,11 @@ class ReplayBuffer:
         """Uniform batch (obs, actions, rewards, next_obs, terminated) from the whole buffer."""
         return self.gather(torch.randint(0, self.size, (batch_size,)))
 
-    def sample_finished(self, batch_size, per_step=False):
+    def sample_finished(self, batch_size):
         """Uniform batch from the transitions whose episode has ended (the newest episode is still
-        running), and the episodic return of each one's episode (for the return bonus), or with
-        `per_step` that return over the episode's length."""
+        running), and the episodic return of each one's episode (for the return bonus)."""
         idx = self.finished_indices(batch_size)
-        returns = self.episode_returns[idx]
-        return self.gather(idx), returns / self.episode_lengths[idx].clamp(min=1) if per_step else returns
+        return self.gather(idx), self.episode_returns[idx]
 
     def finished_indices(self, n):
         """n uniform indices of transitions whose episode has ended."""
@@ -169,7 +167,6 @@ class TeacherBuffer:
             self.episodes.remove(self._first_to_leave(new))
         self._flat = [torch.cat(parts) for parts in zip(*(data for _, data in self.episodes))]
         self._flat_returns = torch.cat([torch.full((len(data[0]),), ret) for ret, data in self.episodes])
-        self._flat_rates = torch.cat([torch.full((len(data[0]),), ret / len(data[0])) for ret, data in self.episodes])
 
     def _first_to_leave(self, new):
         others = [ep for ep in self.episodes if ep is not new]
@@ -191,11 +188,11 @@ class TeacherBuffer:
         self.add_episode(episodic_return, obs, actions, next_obs, terminated)
         return True
 
-    def sample(self, batch_size, per_step=False):
-        """Uniform batch (obs, actions, next_obs, terminated, episodic return of each one's episode, or
-        with `per_step` that return over the episode's length) over the kept transitions."""
+    def sample(self, batch_size):
+        """Uniform batch (obs, actions, next_obs, terminated, episodic return of each one's episode)
+        over the kept transitions."""
         idx = torch.randint(0, len(self._flat[0]), (batch_size,))
-        return (*(t[idx] for t in self._flat), (self._flat_rates if per_step else self._flat_returns)[idx])
+        return (*(t[idx] for t in self._flat), self._flat_returns[idx])
 
     def state_dict(self):
         return {"capacity": self.capacity, "episodes": self.episodes}
@@ -206,24 +203,22 @@ class TeacherBuffer:
             self.add_episode(ret, *data)
 
 
-def mixed_batch(teacher_buffer, self_buffer, batch_size, alpha, with_returns=False, per_step=False):
+def mixed_batch(teacher_buffer, self_buffer, batch_size, alpha, with_returns=False):
     """The mixture alpha * R_E + (1 - alpha) * R_B (the paper's d_mix of Eqs. 7 and 8).
 
     round(alpha * batch_size) rows come from the teacher buffer and the rest from the self buffer.
     Returns (obs, actions, next_obs, terminated), the env rewards of the self rows (teacher
     transitions carry no env reward: the learner never needs one) and, with `with_returns`, the
-    episodic return of each row's episode (self rows then come from finished episodes only; with
-    `per_step`, that return over the episode's length), else None.
+    episodic return of each row's episode (self rows then come from finished episodes only), else None.
     """
     num_teacher = round(alpha * batch_size)
     if with_returns:
-        (obs, actions, rewards, next_obs, terminated), returns = self_buffer.sample_finished(batch_size - num_teacher,
-                                                                                             per_step)
+        (obs, actions, rewards, next_obs, terminated), returns = self_buffer.sample_finished(batch_size - num_teacher)
     else:
         (obs, actions, rewards, next_obs, terminated), returns = self_buffer.sample(batch_size - num_teacher), None
     if num_teacher == 0:
         return (obs, actions, next_obs, terminated), rewards, returns
-    t_obs, t_actions, t_next_obs, t_terminated, t_returns = teacher_buffer.sample(num_teacher, per_step)
+    t_obs, t_actions, t_next_obs, t_terminated, t_returns = teacher_buffer.sample(num_teacher)
     batch = (torch.cat([t_obs, obs]), torch.cat([t_actions, actions]),
              torch.cat([t_next_obs, next_obs]), torch.cat([t_terminated, terminated]))
     return batch, rewards, (torch.cat([t_returns, returns]) if with_returns else None)

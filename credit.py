@@ -18,7 +18,7 @@ from td3 import mlp
 
 def return_bonus(episode_returns, return_range):
     """IRCR's guidance reward: each transition's episodic return mapped to [0, 1] by the lowest
-    and highest returns seen (R_E's included); the same for returns per step and their range."""
+    and highest returns seen (R_E's included)."""
     low, high = return_range
     return (episode_returns - low) / max(high - low, 1e-8)
 

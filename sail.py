@@ -114,8 +114,6 @@ def parse_args(argv=None):
     g.add_argument("--reward", choices=["sail", "airl", "env", "none"], default="sail",
                    help="-log(1-D), log D - log(1-D), the sparse env reward, or none (the credit alone)")
     g.add_argument("--return-bonus", type=nonneg, default=1.0, help="weight of the episode's scaled return (IRCR)")
-    g.add_argument("--return-bonus-of", choices=["return", "rate"], default="return",
-                   help="what the bonus scales to [0, 1]: the episode's return, or its return per step")
     g.add_argument("--return-decomposition", type=nonneg, default=1.0, help="weight of the learned reward (RRD)")
     g.add_argument("--decomposition-unit", choices=["range", "rate"], default="rate",
                    help="learned reward's unit: range of returns per step, or over the time limit (RRD's)")
@@ -191,8 +189,7 @@ def update(parts, s, args, unit):
     stats = {} if reward_model is None else train_reward_model(
         reward_model, parts["reward_optimizer"], parts["self_buffer"], args.batch_size, args.decomposition_subset)
     batch, env_rewards, episode_returns = mixed_batch(parts["teacher_buffer"], parts["self_buffer"], args.batch_size,
-                                                      s.alpha, with_returns=args.return_bonus > 0,
-                                                      per_step=args.return_bonus_of == "rate")
+                                                      s.alpha, with_returns=args.return_bonus > 0)
     obs, actions, next_obs, terminated = (x.to(agent.device) for x in batch)
     if args.reward == "env":  # the TD3-sparse baseline: the env's own (sparse episodic) reward
         rewards = env_rewards.to(agent.device)
@@ -201,9 +198,7 @@ def update(parts, s, args, unit):
     else:
         rewards = shaped_reward(disc, obs, actions, args.reward)
     if args.return_bonus > 0:
-        # by rate, a long slow episode (standing still) ranks below a short fast one (a run, then a fall)
-        scale = s.rate_range if args.return_bonus_of == "rate" else s.return_range
-        rewards = rewards + args.return_bonus * return_bonus(episode_returns.to(agent.device), scale)
+        rewards = rewards + args.return_bonus * return_bonus(episode_returns.to(agent.device), s.return_range)
     actor_penalty = None
     if reward_model is not None:  # in the unit of the per-step returns seen, whatever the reward's scale
         with torch.no_grad():

@@ -17,7 +17,7 @@ import cpu_kernels
 from buffers import ReplayBuffer, TeacherBuffer, mixed_batch
 from demos import load_demos, save_demos
 from envs import absorbing_state, add_features, evaluate_policy, get_env_state, make_env, rollout, set_env_state
-from plumbing import ADDED_FLAGS, ConfigError, load_checkpoint
+from plumbing import ConfigError, load_checkpoint
 from td3 import Actor, TD3, make_adam
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -932,14 +932,13 @@ SMOKE = {
 }
 
 
-def sail_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_range, reward_model=None, unit=1.0,
-                rate_range=(float("inf"), -float("inf"))):
+def sail_update(agent, disc, teacher_buffer, self_buffer, alpha, args, return_range, reward_model=None, unit=1.0):
     """sail.py's update on the given parts: with a reward model, one minibatch of it (here at a learning
     rate of 0, so that it stays as the test set it), then one TD3 step with the reward r'."""
     parts = {"agent": agent, "disc": disc, "teacher_buffer": teacher_buffer, "self_buffer": self_buffer}
     if reward_model is not None:
         parts |= {"reward_model": reward_model, "reward_optimizer": torch.optim.SGD(reward_model.parameters(), lr=0.0)}
-    state = sail.LoopState(alpha=alpha, kernels="torch", return_range=return_range, rate_range=rate_range)
+    state = sail.LoopState(alpha=alpha, kernels="torch", return_range=return_range)
     return sail.update(parts, state, args, unit)
 
 
@@ -954,13 +953,13 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
     means = {}
     for bonus in (0.0, 2.0):
         torch.manual_seed(0)  # the same batch both times: the bonus draws no extra samples here
-        args = argparse.Namespace(batch_size=64, reward="sail", return_bonus=bonus, return_bonus_of="return",
-                                  absorbing=False, return_decomposition=0.0, action_cost="none")
+        args = argparse.Namespace(batch_size=64, reward="sail", return_bonus=bonus, absorbing=False,
+                                  return_decomposition=0.0, action_cost="none")
         means[bonus] = float(sail_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args,
                                         return_range=(2.0, 12.0))["reward_mean"])
     assert means[2.0] - means[0.0] == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-5)
     # IRCR (--reward none): the bonus is the whole reward, D plays no part
-    args = argparse.Namespace(batch_size=64, reward="none", return_bonus=2.0, return_bonus_of="return", absorbing=False,
+    args = argparse.Namespace(batch_size=64, reward="none", return_bonus=2.0, absorbing=False,
                               return_decomposition=0.0, action_cost="none", decomposition_subset=16)
     ircr = sail_update(copy.deepcopy(agent), disc, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(2.0, 12.0))
     assert float(ircr["reward_mean"]) == pytest.approx(2.0 * (7.0 - 2.0) / (12.0 - 2.0), abs=1e-6)
@@ -975,34 +974,6 @@ def test_return_bonus_adds_the_scaled_episodic_return_to_the_critic_reward():
     assert float(rrd["reward_mean"]) == pytest.approx(3.0 * 0.5 / (10.0 / 40), abs=1e-5)
     # --decomposition-unit rate: per-step returns 0.5 to 3.0 seen, whatever the time limit
     assert decomposition_unit("rate", (2.0, 12.0), (0.5, 3.0), episode_steps=40) == pytest.approx(2.5)
-
-
-def test_return_bonus_of_rate_ranks_a_short_fast_episode_above_a_long_slow_one():
-    """R_E holds standing still (1000 steps, 1070) and a run that falls (266 steps, 505). By return the bonus
-    pays the standing steps 1 and the run's 0; by return per step (1.07 against 1.90) the other way round.
-    The self buffer gives its episodes' rates as well."""
-    import argparse
-    teacher = TeacherBuffer(2000)
-    for ret, steps, fill in ((1070.0, 1000, 0.0), (505.0, 266, 1.0)):
-        teacher.add_episode(ret, np.full((steps, 3), fill), np.zeros((steps, 2)), np.full((steps, 3), fill),
-                            np.zeros(steps))
-    obs, *_, rates = teacher.sample(512, per_step=True)
-    assert torch.allclose(rates, torch.where(obs[:, 0] == 1.0, 505.0 / 266, 1.07))
-    self_buffer = ReplayBuffer(obs_dim=3, act_dim=2, capacity=100)
-    for i in range(40):
-        self_buffer.add(np.full(3, i), np.zeros(2), 0.0, np.full(3, i + 1), 0.0)
-    self_buffer.end_episode(0, 7.0)
-    assert torch.allclose(self_buffer.sample_finished(8, per_step=True)[1], torch.full((8,), 7.0 / 40))
-    agent = TD3(obs_dim=3, act_dim=2, action_low=-np.ones(2), action_high=np.ones(2), hidden=(16, 16))
-    means = {}
-    for of in ("return", "rate"):
-        torch.manual_seed(0)
-        args = argparse.Namespace(batch_size=256, reward="none", return_bonus=1.0, return_bonus_of=of, absorbing=False,
-                                  return_decomposition=0.0, action_cost="none")
-        means[of] = float(sail_update(copy.deepcopy(agent), Discriminator(3, 2, [16]), teacher, self_buffer, 1.0, args,
-                                      return_range=(505.0, 1070.0), rate_range=(1.07, 505.0 / 266))["reward_mean"])
-    # about 1000 / 1266 of the rows are standing still's: the mean is their share by return, the run's by rate
-    assert means["return"] > 0.7 and means["rate"] < 0.3 and means["return"] + means["rate"] == pytest.approx(1.0)
 
 
 class _QuadraticQ(torch.nn.Module):
@@ -1053,8 +1024,8 @@ def test_actor_action_cost_charges_the_learned_cost_over_the_decomposition_unit(
         agent = TD3(obs_dim=3, act_dim=2, action_low=-np.ones(2), action_high=np.ones(2), hidden=(16, 16),
                     policy_delay=1, lr=1e-2)
         agent.critic.q1, agent.critic.q2 = _QuadraticQ([0.6, 0.6]), _QuadraticQ([0.6, 0.6])
-        args = argparse.Namespace(batch_size=64, reward="none", return_bonus=0.0, return_bonus_of="return",
-                                  absorbing=False, return_decomposition=1.0, decomposition_subset=16,
+        args = argparse.Namespace(batch_size=64, reward="none", return_bonus=0.0, absorbing=False,
+                                  return_decomposition=1.0, decomposition_subset=16,
                                   action_cost="reward-and-actor" if charged else "reward")
         for _ in range(200):
             sail_update(agent, None, TeacherBuffer(10), self_buffer, 0.0, args, return_range=(0.0, 1.0),
@@ -2032,10 +2003,6 @@ def test_a_resumed_run_keeps_its_saved_flags_over_todays_defaults(tmp_path):
     (run / "config.json").write_text(json.dumps(older))
     with pytest.raises(ConfigError, match="has no --disc-negatives"):
         plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py")
-    # but one added since with the value the older code always ran: that value, not today's default
-    (run / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k not in ("given", "return_bonus_of")}))
-    assert plumbing.resume_config(str(run), sail.parse_args(["--resume", str(run), "--return-bonus-of", "rate"]), set(),
-                                  sail.RESUMABLE, "sail.py").return_bonus_of == "return"
     # nor may a run made with a flag that has left the code resume without it
     (run / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k != "given"} | {"update_every": 1}))
     assert plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py").total_timesteps == 600
@@ -2420,7 +2387,7 @@ def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
                 args = vars(sail.parse_args(flags))
                 keys = [key for key in args if key not in sail.SETUP and key != "given"] + [
                     "method", "env", "seed", "num_demos"]
-                saved = {key: config.get(key, ADDED_FLAGS.get(key, "(missing)")) for key in keys}
+                saved = {key: config.get(key, "(missing)") for key in keys}
                 wanted = {key: args[key] for key in keys}
                 assert saved == wanted, (path, {key: (saved[key], wanted[key]) for key in keys
                                                 if saved[key] != wanted[key]})

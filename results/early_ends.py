@@ -205,9 +205,7 @@ episode_returns_per_step = self_buffer["episode_returns"]
 d_reward, learned, _ = critic_reward(config, checkpoint, load_parts(config, checkpoint, obs.shape[1], actions.shape[1],
                                                                     ("disc", "reward_model")),
                                      obs, actions, self_buffer["data"][3], env.max_episode_steps)
-by_rate = config.get("return_bonus_of", "return") == "rate"  # the bonus ranks returns per step
-credit = episode_returns_per_step / self_buffer["episode_lengths"].clamp(min=1) if by_rate else episode_returns_per_step
-bonus = (config["return_bonus"] * return_bonus(credit, checkpoint["loop"]["rate_range" if by_rate else "return_range"])
+bonus = (config["return_bonus"] * return_bonus(episode_returns_per_step, checkpoint["loop"]["return_range"])
          if config["return_bonus"] > 0 else None)
 parts = {name: value for name, value in (("D's reward", d_reward), ("return bonus", bonus), ("learned reward", learned))
          if value is not None}

@@ -287,26 +287,6 @@ GRIDS = {
                         for line in grid([env], {"sail-no-time-feature": sail(
                             "SAIL (--no-time-feature)", *OFF_POLICY, *DEFAULTS, "--no-time-feature")}, [9, 10, 11])],
     # the paper's 4-demonstration experiment: every method with 4 teacher episodes
-    # The return bonus ranked by return per step (--return-bonus-of rate), a screen at 150k steps, no decision on it.
-    # With a weak teacher R_E fills with standing still: `weak-k256`'s Walker2d-v5 seed 9 (today's defaults) at 100k
-    # holds six episodes of 1000 steps at 0.06-0.10 m/s (returns 1062-1101), 6000 of its 9870 transitions, beside the
-    # teacher (505 in 266 steps at 0.90 m/s) and runs that fall. The bonus ranks episodes by return, so it pays every
-    # standing step the most (the highest returns seen) and a run's steps little; by return per step the order turns
-    # (1.06-1.10 against 1.6-1.9 for the runs). Where every episode lasts the time limit (HalfCheetah-v5, Swimmer-v5)
-    # the two rankings are the same. Seed 9, 150k steps (the first half of a full run: nothing in the learning
-    # depends on --total-timesteps): Walker2d-v5 with its weak teacher against `weak-k256`'s seed 9 (evaluations
-    # 302-1058 from 100k to 150k, mean 646), and Hopper-v5 with its shipped teacher, where a fast run that falls
-    # outscores a whole one per step, against `decomposition-subset`'s seed 9 (evaluations from 50k to 150k: mean
-    # 1079, every one with episodes shorter than 1000 steps). Questions: at 100k and 150k, how many standing episodes
-    # (900 steps or more at under 0.3 m/s) does Walker2d-v5's R_E hold, and do its evaluations move forward; does
-    # Hopper-v5 fall sooner. A decision would need its own grid and rule (seeds 9-11, 300k), written before its runs;
-    # if neither question favours it, the flag leaves
-    "bonus-rate-screen": grid(["Walker2d-v5"], {"sail-weak-bonus-rate": sail(
-        "SAIL (weak teacher, --teacher-keep pareto --decomposition-subset 256 --return-bonus-of rate)",
-        "--total-timesteps", "150000", "--threads", "1", *DEFAULTS, "--return-bonus-of", "rate",
-        "--demos", "demos/Walker2d-v5-weak.npz")}, [9]) + grid(["Hopper-v5"], {"sail-bonus-rate": sail(
-            "SAIL (--teacher-keep pareto --decomposition-subset 256 --return-bonus-of rate)",
-            "--total-timesteps", "150000", "--threads", "1", *DEFAULTS, "--return-bonus-of", "rate")}, [9]),
     "four-demos": grid(["Hopper-v5", "Walker2d-v5"],
                        {"sail-4demos": sail("SAIL-paper", *PAPER, "--num-demos", "4"),
                         "gail-4demos": ("gail.py", ["--total-timesteps", "1000000", "--threads", "1",
