@@ -270,21 +270,6 @@ GRIDS = {
         [env], {"sail-weak-pareto-k256": sail("SAIL (weak teacher, --teacher-keep pareto --decomposition-subset 256)",
                                               *OFF_POLICY, *PARETO, "--decomposition-subset", "256",
                                               "--demos", f"demos/{env}-weak.npz")}, [9, 10, 11])],
-    # RRD's K = 1000 with the learned reward weighted 3 (`decomposition-weight3`'s values, not adopted on the shipped
-    # teachers for Swimmer-v5 seeds 10-11 alone; Ant-v5 +49% there) with the weak teachers. On Walker2d-v5 in the
-    # standing trap the learned per-step reward rises with forward velocity while D's is flat and the critic's Q
-    # falls with it (weak-teacher/, weak-k256/); weighted 3 and fitted to whole episodes, does it pull the agent out
-    # of standing sooner? The rule, fixed before its runs, a screen on Walker2d-v5 seed 9 against today's defaults
-    # on that seed (`weak-k256`: final 1603, evaluations 100k-300k mean 935, six standing episodes of R_E at 100k,
-    # the threshold above the teacher's from 200k): it goes on to a second stage (Walker2d-v5, Hopper-v5 and Ant-v5,
-    # seeds 10-11, against the defaults on those seeds; its rule written before those runs) if its final (mean of
-    # the last 5 evaluations) is at least 1500 and its evaluations' mean over 100k-300k is above 935; else it stops,
-    # and no default changes on it
-    "weak-w3": grid(["Walker2d-v5"], {"sail-weak-pareto-k1000-w3": sail(
-        "SAIL (weak teacher, --teacher-keep pareto --decomposition-subset 1000 --return-decomposition 3)",
-        *OFF_POLICY, *LN_ONPOLICY_FLAGS, "--return-decomposition", "3", "--decomposition-unit", "rate",
-        "--disc-action-norm", "--action-cost", "reward-and-actor", "--decomposition-subset", "1000",
-        "--teacher-keep", "pareto", "--demos", "demos/Walker2d-v5-weak.npz")}, [9]),
     # Without the time feature (--no-time-feature): the observation loses 1 - t/T (the authors' code appends it).
     # No reward of the defaults needs it (D's, the return bonus and the learned one are not functions of t, and a
     # time-limit end is bootstrapped), but the actor is a function of it, and there it is where falls come from.
