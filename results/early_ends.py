@@ -201,11 +201,10 @@ flipped_now = upside_down(obs.numpy())
 first_by_start = np.full(n, n)
 np.minimum.at(first_by_start, episode_start[flipped_now & finished], index[flipped_now & finished])
 first_flip = np.where(first_by_start[episode_start] < n, first_by_start[episode_start], -1)
-episode_returns_per_step = self_buffer["episode_returns"]
 d_reward, learned, _ = critic_reward(config, checkpoint, load_parts(config, checkpoint, obs.shape[1], actions.shape[1],
                                                                     ("disc", "reward_model")),
                                      obs, actions, self_buffer["data"][3], env.max_episode_steps)
-bonus = (config["return_bonus"] * return_bonus(episode_returns_per_step, checkpoint["loop"]["return_range"])
+bonus = (config["return_bonus"] * return_bonus(self_buffer["episode_returns"], checkpoint["loop"]["return_range"])
          if config["return_bonus"] > 0 else None)
 parts = {name: value for name, value in (("D's reward", d_reward), ("return bonus", bonus), ("learned reward", learned))
          if value is not None}
