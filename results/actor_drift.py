@@ -1,6 +1,6 @@
 """The actor's drift: how far the actor is from its Polyak-averaged target, and what the critic says about it.
 
-    python results/actor_drift.py RUN_DIR [--episodes 3] [--seed 1000]
+    python results/actor_drift.py RUN_DIR [--episodes 3] [--seed 1000] [--critic-search N]
 
 RUN_DIR is a sail.py run folder (config.json and checkpoint.pt). Plays --episodes episodes of the
 deterministic target actor and prints their returns and lengths; then, on their states, the mean
@@ -13,7 +13,10 @@ entries of the observation at its last step (Hopper-v5 and Walker2d-v5: the tors
 angle). Last, the median over parameters of Adam's |m| / sqrt(v) for the actor and the critics:
 about 0.15 where a gradient is zero-mean noise of a steady size (the stationary std of m with
 beta1 = 0.9 is sqrt(0.1 / 1.9) of the gradient's; less where the size varies), near 1 where it
-keeps its sign. Adam's step is lr times that ratio, whatever the gradient's size.
+keeps its sign. Adam's step is lr times that ratio, whatever the gradient's size. With --critic-search N,
+last, N episodes of the critic's own policy: at each step, of the actor's action and 64 perturbations of it
+(Gaussian, std 0.2 half ranges, clipped to the bounds), the one with the highest min(Q1, Q2): where the actor
+falls, whether the critic knows a way out nearby.
 """
 
 import argparse
@@ -32,6 +35,8 @@ p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
 p.add_argument("--episodes", type=positive_int, default=3, help="episodes of the target actor")
 p.add_argument("--seed", type=int, default=1000, help="seed of the probe's env")
+p.add_argument("--critic-search", type=positive_int, default=None, metavar="N",
+               help="episodes of the policy that takes the critic's best of 65 actions near the actor's")
 args = p.parse_args()
 config, env, agent, checkpoint = load_agent(p, args.run_dir, args.seed)
 
@@ -63,3 +68,18 @@ for name in ("actor_optimizer", "critic_optimizer"):
     state = checkpoint["agent"][name]["state"].values()
     ratio = torch.cat([(s["exp_avg"].abs() / (s["exp_avg_sq"].sqrt() + 1e-8)).flatten() for s in state])
     print(f"{name.split('_')[0]}'s Adam: median |m| / sqrt(v) {ratio.median():.3f}")
+if args.critic_search:
+    generator = torch.Generator().manual_seed(args.seed)
+    low, high = (torch.as_tensor(bound, dtype=torch.float32) for bound in (env.action_space.low, env.action_space.high))
+
+    def critics_choice(obs):
+        state = torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0)
+        action = agent.actor(state)
+        noise = 0.2 * scale * torch.randn(64, action.shape[1], generator=generator)
+        candidates = torch.cat([action, action + noise]).clamp(low, high)
+        return candidates[torch.min(*agent.critic(state.expand(len(candidates), -1), candidates)).argmax()].numpy()
+    episodes = [rollout(env, critics_choice) for _ in range(args.critic_search)]
+    print(f"the critic's own policy (its best of the actor's action and 64 perturbed ones): returns "
+          + ", ".join(f"{e['episodic_return']:.0f}" for e in episodes) + "; lengths "
+          + ", ".join(str(e["length"]) for e in episodes) + f"; {sum(e['terminated'] for e in episodes)} of "
+          f"{len(episodes)} ended early")
