@@ -1436,10 +1436,11 @@ def test_early_end_probe_on_ant_shows_the_reward_by_steps_to_a_flip_and_the_rest
 def test_actor_drift_probe_measures_the_actor_against_its_target_on_the_targets_states(tmp_path, straight_run):
     """results/actor_drift.py: the target actor's episodes, then on their states the actor's distance from the
     target (> 0 once the actor has stepped: the target moves by tau of the way), the critic at both actions,
-    Adam's |m| / sqrt(v) and the critic's own policy's episodes; a folder that is not a run is one error line."""
+    Adam's |m| / sqrt(v), the critic's own policy's episodes and the critic's Q against the reward that followed
+    along the actor's; a folder that is not a run is one error line."""
     probe = os.path.join("results", "actor_drift.py")
-    proc, missing = run_scripts((probe, str(straight_run), "--episodes", "2", "--critic-search", "2"),
-                                (probe, str(tmp_path)))
+    proc, missing = run_scripts((probe, str(straight_run), "--episodes", "2", "--critic-search", "2",
+                                 "--critic-check", "2"), (probe, str(tmp_path)))
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.splitlines()
     assert re.match(r"Hopper-v5 at step 1000: the target actor's episodes, returns -?\d+, -?\d+; lengths \d+, \d+$",
@@ -1456,7 +1457,10 @@ def test_actor_drift_probe_measures_the_actor_against_its_target_on_the_targets_
     assert [line.split(":")[0] for line in lines[4:6]] == ["actor's Adam", "critic's Adam"]
     search = re.match(r"the critic's own policy \(its best of the actor's action and 64 perturbed ones\): returns "
                       r"-?\d+, -?\d+; lengths (\d+), (\d+); (\d) of 2 ended early$", lines[6])
-    assert search and len(lines) == 7 and int(search[3]) <= 2 and min(int(search[1]), int(search[2])) >= 1, lines[6:]
+    assert search and int(search[3]) <= 2 and min(int(search[1]), int(search[2])) >= 1, lines[6:]
+    check = re.match(r"the actor's 2 episodes \(returns -?\d+, -?\d+; ([0-2]) ended early\): over their first 50 steps "
+                     r"the critic's min\(Q1, Q2\) (-?\d+\.\d), the discounted reward that followed (-?\d+\.\d)", lines[7])
+    assert check and len(lines) == 8 and float(check[3]) != 0, lines[7:]
     assert missing.returncode == 2 and "has no config.json" in missing.stderr.strip().splitlines()[-1]
 
 

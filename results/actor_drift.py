@@ -1,6 +1,6 @@
 """The actor's drift: how far the actor is from its Polyak-averaged target, and what the critic says about it.
 
-    python results/actor_drift.py RUN_DIR [--episodes 3] [--seed 1000] [--critic-search N]
+    python results/actor_drift.py RUN_DIR [--episodes 3] [--seed 1000] [--critic-search N] [--critic-check N]
 
 RUN_DIR is a sail.py run folder (config.json and checkpoint.pt). Plays --episodes episodes of the
 deterministic target actor and prints their returns and lengths; then, on their states, the mean
@@ -16,7 +16,11 @@ beta1 = 0.9 is sqrt(0.1 / 1.9) of the gradient's; less where the size varies), n
 keeps its sign. Adam's step is lr times that ratio, whatever the gradient's size. With --critic-search N,
 last, N episodes of the critic's own policy: at each step, of the actor's action and 64 perturbations of it
 (Gaussian, std 0.2 half ranges, clipped to the bounds), the one with the highest min(Q1, Q2): where the actor
-falls, whether the critic knows a way out nearby.
+falls, whether the critic knows a way out nearby. With --critic-check N, N episodes of the actor, each with the
+critic's min(Q1, Q2) at its actions over its first 50 steps against what followed them: the discounted sum of the
+reward sail.py's update would give the critic for the rest of the episode (from the checkpoint's D, learned reward
+and return bonus; at the time limit the critic's own value of the last state): where Q is the larger, the critic
+values the actor's walk above what it earns.
 """
 
 import argparse
@@ -27,9 +31,10 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from credit import return_bonus  # noqa: E402
 from envs import rollout  # noqa: E402
 from plumbing import positive_int  # noqa: E402
-from run_folder import load_agent  # noqa: E402
+from run_folder import critic_reward, load_agent, load_parts  # noqa: E402
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("run_dir")
@@ -37,6 +42,8 @@ p.add_argument("--episodes", type=positive_int, default=3, help="episodes of the
 p.add_argument("--seed", type=int, default=1000, help="seed of the probe's env")
 p.add_argument("--critic-search", type=positive_int, default=None, metavar="N",
                help="episodes of the policy that takes the critic's best of 65 actions near the actor's")
+p.add_argument("--critic-check", type=positive_int, default=None, metavar="N",
+               help="episodes of the actor with the critic's Q against the discounted reward that followed")
 args = p.parse_args()
 config, env, agent, checkpoint = load_agent(p, args.run_dir, args.seed)
 
@@ -83,3 +90,31 @@ if args.critic_search:
           + ", ".join(f"{e['episodic_return']:.0f}" for e in episodes) + "; lengths "
           + ", ".join(str(e["length"]) for e in episodes) + f"; {sum(e['terminated'] for e in episodes)} of "
           f"{len(episodes)} ended early")
+if args.critic_check:
+    parts = load_parts(config, checkpoint, *(space.shape[0] for space in (env.observation_space, env.action_space)),
+                       names=("disc", "reward_model"))
+    checks = []
+    for _ in range(args.critic_check):
+        episode = rollout(env, agent.act)
+        obs, actions, next_obs = (torch.as_tensor(episode[key], dtype=torch.float32)
+                                  for key in ("observations", "actions", "next_observations"))
+        if config["reward"] == "env":  # TD3-sparse: the episodic return on the last step
+            reward = torch.zeros(len(obs))
+            reward[-1] = episode["episodic_return"]
+        else:
+            reward = critic_reward(config, checkpoint, parts, obs, actions, next_obs, env.max_episode_steps)[2]
+            reward = reward.flatten() + config["return_bonus"] * return_bonus(
+                torch.full((len(obs),), episode["episodic_return"]), checkpoint["loop"]["return_range"])
+        value = 0.0 if episode["terminated"] else torch.min(*agent.critic(next_obs[-1:], agent.actor(next_obs[-1:]))).item()
+        followed = []
+        for r in reversed(reward.tolist()):
+            value = r + config["gamma"] * value
+            followed.append(value)
+        steps = min(50, len(obs))
+        checks.append((episode, torch.min(*agent.critic(obs[:steps], actions[:steps])).mean().item(),
+                       np.mean(followed[::-1][:steps])))
+    q, followed = (np.mean([check[i] for check in checks]) for i in (1, 2))
+    print(f"the actor's {len(checks)} episodes (returns " + ", ".join(f"{c[0]['episodic_return']:.0f}" for c in checks)
+          + f"; {sum(c[0]['terminated'] for c in checks)} ended early): over their first 50 steps the critic's "
+          f"min(Q1, Q2) {q:.1f}, the discounted reward that followed {followed:.1f}"
+          + (f" ({100 * (q / followed - 1):+.0f}%)" if followed > 0 else ""))
