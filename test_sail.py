@@ -1458,8 +1458,9 @@ def test_actor_drift_probe_measures_the_actor_against_its_target_on_the_targets_
     search = re.match(r"the critic's own policy \(its best of the actor's action and 64 perturbed ones\): returns "
                       r"-?\d+, -?\d+; lengths (\d+), (\d+); (\d) of 2 ended early$", lines[6])
     assert search and int(search[3]) <= 2 and min(int(search[1]), int(search[2])) >= 1, lines[6:]
-    check = re.match(r"the actor's 2 episodes \(returns -?\d+, -?\d+; ([0-2]) ended early\): over their first 50 steps "
-                     r"the critic's min\(Q1, Q2\) (-?\d+\.\d), the discounted reward that followed (-?\d+\.\d)", lines[7])
+    check = re.match(r"the actor's 2 episodes \(returns -?\d+, -?\d+; ([0-2]) ended early\): over their first 50 "
+                     r"steps the critic's min\(Q1, Q2\) (-?\d+\.\d), the discounted reward that followed (-?\d+\.\d)",
+                     lines[7])
     assert check and len(lines) == 8 and float(check[3]) != 0, lines[7:]
     assert missing.returncode == 2 and "has no config.json" in missing.stderr.strip().splitlines()[-1]
 

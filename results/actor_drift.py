@@ -102,10 +102,11 @@ if args.critic_check:
             reward = torch.zeros(len(obs))
             reward[-1] = episode["episodic_return"]
         else:
-            reward = critic_reward(config, checkpoint, parts, obs, actions, next_obs, env.max_episode_steps)[2]
-            reward = reward.flatten() + config["return_bonus"] * return_bonus(
-                torch.full((len(obs),), episode["episodic_return"]), checkpoint["loop"]["return_range"])
-        value = 0.0 if episode["terminated"] else torch.min(*agent.critic(next_obs[-1:], agent.actor(next_obs[-1:]))).item()
+            d_and_learned = critic_reward(config, checkpoint, parts, obs, actions, next_obs, env.max_episode_steps)[2]
+            reward = torch.zeros(len(obs)) + torch.as_tensor(d_and_learned).flatten() + config["return_bonus"] * (
+                return_bonus(torch.full((len(obs),), episode["episodic_return"]), checkpoint["loop"]["return_range"]))
+        last = next_obs[-1:]
+        value = 0.0 if episode["terminated"] else torch.min(*agent.critic(last, agent.actor(last))).item()
         followed = []
         for r in reversed(reward.tolist()):
             value = r + config["gamma"] * value
