@@ -20,7 +20,8 @@ falls, whether the critic knows a way out nearby. With --critic-check N, N episo
 critic's min(Q1, Q2) at its actions over its first 50 steps against what followed them: the discounted sum of the
 reward sail.py's update would give the critic for the rest of the episode (from the checkpoint's D, learned reward
 and return bonus; at the time limit the critic's own value of the last state): where Q is the larger, the critic
-values the actor's walk above what it earns.
+values the actor's walk above what it earns; then both per episode (whether Q, at an episode's start, tells the
+episodes that fall from those that run).
 """
 
 import argparse
@@ -119,3 +120,6 @@ if args.critic_check:
           + f"; {sum(c[0]['terminated'] for c in checks)} ended early): over their first 50 steps the critic's "
           f"min(Q1, Q2) {q:.1f}, the discounted reward that followed {followed:.1f}"
           + (f" ({100 * (q / followed - 1):+.0f}%)" if followed > 0 else ""))
+    # the same per episode: does the critic tell, at an episode's start, the episodes that fall from those that run?
+    print("  per episode, over its first 50 steps: min(Q1, Q2) " + ", ".join(f"{c[1]:.1f}" for c in checks)
+          + "; the discounted reward that followed " + ", ".join(f"{c[2]:.1f}" for c in checks))
