@@ -270,22 +270,6 @@ GRIDS = {
         [env], {"sail-weak-pareto-k256": sail("SAIL (weak teacher, --teacher-keep pareto --decomposition-subset 256)",
                                               *OFF_POLICY, *PARETO, "--decomposition-subset", "256",
                                               "--demos", f"demos/{env}-weak.npz")}, [9, 10, 11])],
-    # The discount with the weak teachers (a screen). Walker2d-v5's weak-teacher runs walk and fall: at 300k the
-    # actor of `confirm-weak` seed 6 falls after 160-560 steps in 38 of 40 episodes, and so does the critic's own
-    # policy, its best of the actor's action and 64 perturbed ones at each step (`python results/actor_drift.py
-    # RUN_DIR --critic-search 20`: 20 of 20; seeds 7 and 8: 13 of 20, where their actors fell in 21 and 15 of 40):
-    # the critic knows no way out nearby; it values the walk that falls. With gamma = 0.99 a fall T steps ahead costs
-    # gamma^T of the value: at T = 180, 16%. In seed 6's R_E at 300k (probe-300k.txt) the critic's Q over the
-    # episodes that fell (283-578 steps) is 175 against 192 over those that ran 1000 steps, where their returns are
-    # 624-1198 against 963-1569. With gamma = 0.995 that fall costs 41%. (Tried before on the paper's SAIL with the
-    # shipped teachers only: Hopper +17%, Walker2d +3%, HalfCheetah +5%, Ant-v5 one seed -9%; archive/variants.md.)
-    # The rule, fixed before its run: a screen on Walker2d-v5 seed 9 against today's defaults on that seed
-    # (`weak-k256`: final 1603, evaluations 100k-300k mean 935); it goes on to a second stage (its rule written before
-    # those runs) if its final (mean of the last 5 evaluations) is at least 1500 and its 100k-300k mean above 935;
-    # else it stops, and no default changes on it
-    "weak-gamma": grid(["Walker2d-v5"], {"sail-weak-gamma995": sail(
-        "SAIL (weak teacher, --gamma 0.995)", *OFF_POLICY, *DEFAULTS, "--gamma", "0.995",
-        "--demos", "demos/Walker2d-v5-weak.npz")}, [9]),
     # Two updates per env step (--utd 2, RLPD's update-to-data ratio) with the weak teachers (a screen). The weak
     # teachers' Walker2d-v5 runs are late: they stand until 90k-210k and their walks still fall at 300k
     # (confirm-weak/), and the critic cannot tell such a walk early: over an episode's first 50 steps its Q is the
