@@ -478,10 +478,8 @@ def read_config(run_dir):
 
 
 # flags that have left sail.py, with the value today's code always runs: a saved run with another cannot resume
-RETIRED_FLAGS = {"update_every": 1, "noise_color": 0.0, "actor_lr": None, "disc_fall_margin": 0,
+RETIRED_FLAGS = {"update_every": 1, "noise_color": 0.0, "actor_lr": None, "disc_fall_margin": 0, "utd": 1,
                  "return_bonus_of": "return"}
-# flags added to sail.py after runs were saved, with the value the older code always ran: a run without one ran so
-ADDED_FLAGS = {"utd": 1}
 
 
 def resume_config(run_dir, args, given, changeable, script):
@@ -495,7 +493,6 @@ def resume_config(run_dir, args, given, changeable, script):
         raise ConfigError(f"--resume {run_dir}: no checkpoint.pt there (the run stopped before its first "
                           "checkpoint); start it again")
     config = vars(read_config(run_dir))
-    config = {k: v for k, v in ADDED_FLAGS.items() if k in vars(args)} | config
     if config.get("script", script) != script:
         raise ConfigError(f"--resume {run_dir}: a run of {config['script']}, not of {script}")
     ignored = sorted(given - set(changeable) - {"resume"})

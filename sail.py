@@ -107,7 +107,6 @@ def parse_args(argv=None):
     g.add_argument("--policy-noise", type=nonneg, default=0.2, help="target policy smoothing noise std")
     g.add_argument("--noise-clip", type=nonneg, default=0.5, help="target policy smoothing noise clip")
     g.add_argument("--policy-delay", type=pos, default=2, help="critic updates per actor update")
-    g.add_argument("--utd", type=pos, default=1, help="updates (reward model, TD3) per env step after the warm-up")
     g.add_argument("--exploration-noise", type=nonneg, default=0.1, help="std of the Gaussian action noise")
     g.add_argument("--buffer-size", type=pos, default=1_000_000, help="capacity of R_B in transitions")
     g.add_argument("--critic-layer-norm", action=on_off, default=True, help="LayerNorm in the critics (RLPD's)")
@@ -360,8 +359,7 @@ def train(args):
                     # 4. TD3 on the mixture alpha R_E + (1 - alpha) R_B, rewarded by r'(s, a): Eqs. (7), (8)
                     unit = decomposition_unit(args.decomposition_unit, s.return_range, s.rate_range,
                                               env.max_episode_steps)
-                    for _ in range(args.utd):  # more than one: RLPD's update-to-data ratio
-                        stats.update(update(parts, s, args, unit))
+                    stats.update(update(parts, s, args, unit))
                     # stop before a diverged actor acts in the env; the last checkpoint stays good
                     plumbing.check_finite(stats, f"at step {s.global_step}", run_dir)
 

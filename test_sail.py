@@ -17,7 +17,7 @@ import cpu_kernels
 from buffers import ReplayBuffer, TeacherBuffer, mixed_batch
 from demos import load_demos, save_demos
 from envs import absorbing_state, add_features, evaluate_policy, get_env_state, make_env, rollout, set_env_state
-from plumbing import ADDED_FLAGS, ConfigError, load_checkpoint
+from plumbing import ConfigError, load_checkpoint
 from td3 import Actor, TD3, make_adam
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -1241,17 +1241,14 @@ def test_warm_up_waits_for_episodic_returns_where_the_critic_reward_needs_them(t
     """Pendulum's episodes last 200 steps, longer than --learning-starts 50. The return bonus
     (IRCR, no teacher) scales by the range of returns seen, which has two ends once a second
     episode has ended, at step 400: its updates start there. TD3 on the env reward needs no
-    return and starts at 50. With --utd 2, two updates follow each env step from there."""
+    return and starts at 50."""
     flags = ["--env", "Pendulum-v1", "--total-timesteps", "600", "--learning-starts", "50", "--eval-freq", "600",
              "--output-dir", str(tmp_path), *TINY]
-    ircr, td3, utd2 = run_scripts(("sail.py", *flags, "--algo", "ircr", "--run-name", "ircr"),
-                                  ("sail.py", *flags, "--algo", "td3", "--run-name", "td3"),
-                                  ("sail.py", *flags, "--algo", "td3", "--utd", "2", "--run-name", "utd2"))
-    assert ircr.returncode == 0 and td3.returncode == 0 and utd2.returncode == 0, \
-        (ircr.stderr + td3.stderr + utd2.stderr)[-3000:]
+    ircr, td3 = run_scripts(("sail.py", *flags, "--algo", "ircr", "--run-name", "ircr"),
+                            ("sail.py", *flags, "--algo", "td3", "--run-name", "td3"))
+    assert ircr.returncode == 0 and td3.returncode == 0, (ircr.stderr + td3.stderr)[-3000:]
     assert int(read_csv(tmp_path / "ircr")[-1]["updates"]) == 600 - 400 + 1
     assert int(read_csv(tmp_path / "td3")[-1]["updates"]) == 600 - 50 + 1
-    assert int(read_csv(tmp_path / "utd2")[-1]["updates"]) == 2 * (600 - 50 + 1)
 
 
 def test_promotion_switches_alpha_inside_the_loop(tmp_path, poor_hopper_demos):
@@ -1790,7 +1787,7 @@ def test_bad_input_is_one_line_before_training(tmp_path, poor_hopper_demos, caps
                     ["--alpha-anneal-steps", "100"], ["--no-contact-forces"], ["--deploy", "target"], ["--no-lfd"],
                     ["--on-policy-disc"], ["--decomposition-action-cost"], ["--actor-action-cost"],
                     ["--disc-batch-size", "64"], ["--save-model"], ["--checkpoint-freq", "100"],
-                    ["--evaluate", str(tmp_path)], ["--video", "x.gif"], ["--eval-noise", "0.1"]):
+                    ["--evaluate", str(tmp_path)], ["--video", "x.gif"], ["--eval-noise", "0.1"], ["--utd", "2"]):
         proc = main_in_process(sail.main, [*removed, *out], capsys)
         assert_one_line_error(proc)
         assert "unrecognized arguments: " + removed[0] in proc.stderr
@@ -2018,13 +2015,6 @@ def test_a_resumed_run_keeps_its_saved_flags_over_todays_defaults(tmp_path):
     (run / "config.json").write_text(json.dumps(older))
     with pytest.raises(ConfigError, match="has no --disc-negatives"):
         plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py")
-    # but one added since, with the value the older code always ran: that value, not one given now
-    (run / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k not in ("given", "utd")}))
-    with pytest.raises(ConfigError, match="--utd cannot change"):
-        plumbing.resume_config(str(run), sail.parse_args(["--resume", str(run), "--utd", "3"]), {"utd"},
-                               sail.RESUMABLE, "sail.py")
-    assert plumbing.resume_config(str(run), sail.parse_args(["--resume", str(run), "--utd", "3"]), set(),
-                                  sail.RESUMABLE, "sail.py").utd == 1
     # nor may a run made with a flag that has left the code resume without it
     (run / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k != "given"} | {"update_every": 1}))
     assert plumbing.resume_config(str(run), args, args.given, sail.RESUMABLE, "sail.py").total_timesteps == 600
@@ -2409,7 +2399,7 @@ def test_every_committed_run_is_what_its_grid_line_runs_with_sail_py_today():
                 args = vars(sail.parse_args(flags))
                 keys = [key for key in args if key not in sail.SETUP and key != "given"] + [
                     "method", "env", "seed", "num_demos"]
-                saved = {key: config.get(key, ADDED_FLAGS.get(key, "(missing)")) for key in keys}
+                saved = {key: config.get(key, "(missing)") for key in keys}
                 wanted = {key: args[key] for key in keys}
                 assert saved == wanted, (path, {key: (saved[key], wanted[key]) for key in keys
                                                 if saved[key] != wanted[key]})

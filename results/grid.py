@@ -270,35 +270,6 @@ GRIDS = {
         [env], {"sail-weak-pareto-k256": sail("SAIL (weak teacher, --teacher-keep pareto --decomposition-subset 256)",
                                               *OFF_POLICY, *PARETO, "--decomposition-subset", "256",
                                               "--demos", f"demos/{env}-weak.npz")}, [9, 10, 11])],
-    # Two updates per env step (--utd 2, RLPD's update-to-data ratio) with the weak teachers (a screen). The weak
-    # teachers' Walker2d-v5 runs are late: they stand until 90k-210k and their walks still fall at 300k
-    # (confirm-weak/), and the critic cannot tell such a walk early: over an episode's first 50 steps its Q is the
-    # same (within 3%) whether the episode falls after 20 steps or runs 1000 (`actor_drift.py --critic-check 10` on
-    # weak-gamma's seed 9 at 160k and 220k and weak-w3's at 300k, critic-check-*.txt in their run folders), where
-    # the reward that followed ran from 14 to 498. On the shipped teachers `utd2` (the defaults of 2026-12-05,
-    # K = 64; archive/utd2/) ended Walker2d-v5 seeds 9-10 at 3978 and 3625 against 2839 and 3064, Hopper-v5 +10.3%
-    # and HalfCheetah-v5 -3.5% over seeds 9-11, at 1.2-1.6 times the training time: more learning per env step
-    # where the runs are short of steps. The rule, fixed before its run: a screen on Walker2d-v5 seed 9 against today's
-    # defaults on that seed (`weak-k256`: final 1603, evaluations 100k-300k mean 935); it goes on to a second stage
-    # (its rule written before those runs) if its final (mean of the last 5 evaluations) is at least 1500 and its
-    # 100k-300k mean above 935 by more than 10% (for its cost, a tie does not count); else it stops, and no default
-    # changes on it
-    "weak-utd2": grid(["Walker2d-v5"], {"sail-weak-utd2": sail(
-        "SAIL (weak teacher, --utd 2)", *OFF_POLICY, *DEFAULTS, "--utd", "2",
-        "--demos", "demos/Walker2d-v5-weak.npz")}, [9]),
-    # The second stage of `weak-utd2`, run only if its screen passes; the rule, fixed before its runs and before
-    # the screen ended (2026-12-07): --utd 2 becomes the default if (a) with the weak teachers its mean final (mean
-    # of the last 5 evaluations) over Walker2d-v5 seeds 10-11 is above today's defaults' on those seeds (the
-    # `weak-k256` lines, the same code) by more than 10%, (b) with the weak teachers on Hopper-v5 seeds 9-10 it is
-    # not below the defaults' (`weak-k256`) by more than 5%, and (c) with the shipped teacher on HalfCheetah-v5 seeds
-    # 9-10, where two updates per step lost 3.5% at K = 64 (archive/utd2/), not below the defaults'
-    # (`decomposition-subset`) by more than 5%. Walker2d-v5 runs first: if (a) fails, the rest does not run. Ant-v5
-    # is left out of the decision: one run with --utd 2 needs about 3 hours on the 2-core CPU here, longer than a
-    # working session; if adopted, the confirmation seeds (6-8) measure it on Ant-v5 with the rest.
-    "weak-utd2-stage2": [line for env, seeds in [("Walker2d-v5", [10, 11]), ("Hopper-v5", [9, 10])] for line in grid(
-        [env], {"sail-weak-utd2": sail("SAIL (weak teacher, --utd 2)", *OFF_POLICY, *DEFAULTS, "--utd", "2",
-                                       "--demos", f"demos/{env}-weak.npz")}, seeds)]
-    + grid(["HalfCheetah-v5"], {"sail-utd2": sail("SAIL (--utd 2)", *OFF_POLICY, *DEFAULTS, "--utd", "2")}, [9, 10]),
     # Without the time feature (--no-time-feature): the observation loses 1 - t/T (the authors' code appends it).
     # No reward of the defaults needs it (D's, the return bonus and the learned one are not functions of t, and a
     # time-limit end is bootstrapped), but the actor is a function of it, and there it is where falls come from.
